@@ -1,0 +1,1 @@
+"""vsrd-mi optimise stage."""

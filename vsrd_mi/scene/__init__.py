@@ -1,0 +1,1 @@
+"""vsrd-mi scene stage."""
