@@ -1,0 +1,121 @@
+"""Per-frame detection matching exactly as the KITTI object devkit does it (``evaluate_object.cpp``).
+
+The devkit matches in two kinds of pass over the ground truth of one image, in ground-truth order:
+
+* :func:`match_true_positive_scores` (``computeStatistics(compute_fp=false)``): every ground-truth
+  box takes the *highest-scoring* unassigned detection with overlap > ``min_overlap``; the scores of
+  the detections matched to counted ground truth are the candidate thresholds of the PR curve.
+* :func:`count_at_threshold` (``computeStatistics(compute_fp=true, thresh)``): only detections
+  with score >= ``thresh`` take part; every ground-truth box takes the unassigned counted
+  detection of *highest overlap* (> ``min_overlap``), or, failing that, the first ignored one.
+
+"Ignored" ground truth (too small for the difficulty) and ignored detections (2D box too small)
+may absorb a match but count neither as true positive, false positive nor false negative.
+(Other classes and DontCare regions of the devkit do not occur: inputs are cars only.)
+
+:func:`frame_threshold_events` turns one frame's pass results at every score level of that frame
+into increments, so that sequence-wide (TP, FP, FN) at any threshold is a suffix sum
+(:mod:`vsrd_mi.evaluate.ap`) instead of a re-run over every frame.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class FrameMatchInput:
+    """What the matching of one frame needs for one overlap metric and difficulty.
+
+    ``overlap`` is (G, D) (ground truth x detections), ``gt_ignored`` (G,) and ``det_ignored`` (D,)
+    booleans, ``scores`` (D,) detection scores.
+    """
+
+    overlap: np.ndarray
+    gt_ignored: np.ndarray
+    det_ignored: np.ndarray
+    scores: np.ndarray
+
+    def __post_init__(self) -> None:
+        g, d = len(self.gt_ignored), len(self.det_ignored)
+        if np.shape(self.overlap) != (g, d) or len(self.scores) != d:
+            raise ValueError(f"inconsistent shapes: overlap {np.shape(self.overlap)}, "
+                             f"{g} ground truth, {d} detections, {len(self.scores)} scores")
+
+    @property
+    def n_counted_gt(self) -> int:
+        """Number of ground-truth boxes that count (are not ignored)."""
+        return int(np.count_nonzero(~np.asarray(self.gt_ignored, dtype=bool)))
+
+
+@dataclass(frozen=True)
+class Counts:
+    """True positives, false positives and false negatives."""
+
+    tp: int
+    fp: int
+    fn: int
+
+
+def match_true_positive_scores(frame: FrameMatchInput, min_overlap: float) -> list[float]:
+    """Scores of the true positives of the devkit's first pass (no score threshold)."""
+    gt_ignored = np.asarray(frame.gt_ignored, dtype=bool)
+    det_ignored = np.asarray(frame.det_ignored, dtype=bool)
+    scores = np.asarray(frame.scores, dtype=np.float64)
+    assigned = np.zeros(len(scores), dtype=bool)
+    tp_scores: list[float] = []
+    for i in range(len(gt_ignored)):
+        candidates = ~assigned & (frame.overlap[i] > min_overlap)
+        if not np.any(candidates):
+            continue
+        j = int(np.argmax(np.where(candidates, scores, -np.inf)))  # first of the best on ties
+        assigned[j] = True
+        if not gt_ignored[i] and not det_ignored[j]:
+            tp_scores.append(float(scores[j]))
+    return tp_scores
+
+
+def count_at_threshold(frame: FrameMatchInput, min_overlap: float, threshold: float) -> Counts:
+    """(TP, FP, FN) of one frame counting only detections with score >= ``threshold``."""
+    gt_ignored = np.asarray(frame.gt_ignored, dtype=bool)
+    det_ignored = np.asarray(frame.det_ignored, dtype=bool)
+    active = np.asarray(frame.scores, dtype=np.float64) >= threshold
+    assigned = np.zeros(len(det_ignored), dtype=bool)
+    tp = fn = 0
+    for i in range(len(gt_ignored)):
+        candidates = active & ~assigned & (frame.overlap[i] > min_overlap)
+        counted = candidates & ~det_ignored
+        if np.any(counted):
+            j = int(np.argmax(np.where(counted, frame.overlap[i], -np.inf)))
+        elif np.any(candidates):
+            j = int(np.argmax(candidates))  # the first ignored candidate
+        else:
+            fn += int(not gt_ignored[i])
+            continue
+        assigned[j] = True
+        if not gt_ignored[i] and not det_ignored[j]:
+            tp += 1
+    fp = int(np.count_nonzero(active & ~assigned & ~det_ignored))
+    return Counts(tp=tp, fp=fp, fn=fn)
+
+
+def frame_threshold_events(frame: FrameMatchInput, min_overlap: float
+                           ) -> tuple[np.ndarray, np.ndarray]:
+    """Score levels of one frame and the change of (TP, FP, FN) when the threshold drops to each.
+
+    Returns ``levels`` (L,), the distinct detection scores in descending order, and ``deltas``
+    (L, 3) with ``counts(levels[k]) - counts(levels[k - 1])`` (``counts(levels[-1])`` meaning "no
+    detection": (0, 0, number of counted ground truth)). For any threshold ``t`` the frame's counts
+    are that base plus the sum of the deltas of the levels >= ``t``.
+    """
+    levels = np.unique(np.asarray(frame.scores, dtype=np.float64))[::-1]
+    deltas = np.zeros((len(levels), 3), dtype=np.int64)
+    previous = np.array([0, 0, frame.n_counted_gt])
+    for k, level in enumerate(levels):
+        c = count_at_threshold(frame, min_overlap, float(level))
+        current = np.array([c.tp, c.fp, c.fn])
+        deltas[k] = current - previous
+        previous = current
+    return levels, deltas
