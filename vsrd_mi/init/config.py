@@ -1,0 +1,208 @@
+"""Configuration of the 3D attribute initialisation (VSRD++ §III-D, REFERENCE §6).
+
+Every threshold of the stage is a documented field here; the defaults are the paper's / the
+reference code's values unless a field's documentation says why another value is used.
+Units: metres, pixels, frame indices (velocity is in metres per frame index).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+#: Depth sources understood by :func:`vsrd_mi.init.depth.make_depth_source`.
+DEPTH_MODES = ("sgbm", "dir", "none")
+
+
+@dataclass
+class StereoConfig:
+    """OpenCV semi-global matching (``cv2.StereoSGBM``) on a rectified pair.
+
+    The penalties follow OpenCV's documented recipe ``P1 = 8 * C * b^2``, ``P2 = 32 * C * b^2``
+    (C channels, b block size). 128 disparities on KITTI-360 (f*B ~ 328 px*m) cover depths from
+    2.6 m on; the speckle filter and the left-right check (``disp12_max_diff``) invalidate the
+    typical mismatches on textureless car paint and at occlusion borders.
+    """
+
+    #: Smallest disparity searched (px).
+    min_disparity: int = 0
+    #: Number of disparities searched (px, a multiple of 16); the image must be wider than this.
+    num_disparities: int = 128
+    #: Matching block side (px, odd).
+    block_size: int = 5
+    #: ``P1 = p1_factor * channels * block_size^2`` (penalty for disparity changes of 1 px).
+    p1_factor: int = 8
+    #: ``P2 = p2_factor * channels * block_size^2`` (penalty for larger disparity changes).
+    p2_factor: int = 32
+    #: Maximum left-right disparity difference (px) before a pixel is invalidated.
+    disp12_max_diff: int = 1
+    #: Margin (%) by which the best cost must beat the second best.
+    uniqueness_ratio: int = 10
+    #: Regions smaller than this (px) with disparity variation > ``speckle_range`` are invalidated.
+    speckle_window_size: int = 100
+    #: Disparity variation (px) allowed inside a speckle region.
+    speckle_range: int = 2
+    #: Pre-filter cap of the x-derivative prefilter.
+    pre_filter_cap: int = 63
+    #: Run the 3-way SGBM (8 directions would be ``"hh"``; ``"sgbm"`` is 5 directions).
+    mode: str = "sgbm_3way"
+    #: Post-filter the disparity with ``cv2.ximgproc`` weighted least squares (fills holes; the
+    #: photometric-warp selection then decides which pixels to trust). Off by default.
+    wls: bool = False
+    #: WLS smoothness strength.
+    wls_lambda: float = 8000.0
+    #: WLS colour sensitivity.
+    wls_sigma_color: float = 1.5
+    #: Pixels with depth beyond this (m) are marked invalid (disparity < f*B/max_depth): at
+    #: 80 m on KITTI-360 one disparity step is already ~20 m of depth.
+    max_depth: float = 80.0
+
+
+@dataclass
+class PointCloudConfig:
+    """Depth -> pseudo point cloud of one instance in one frame (Algorithm 1, REFERENCE §6 1-4)."""
+
+    #: Erosion kernel side = ``int(sqrt(mask area) * erosion_factor)`` px (square kernel).
+    erosion_factor: float = 0.25
+    #: Keep pixels whose left-right photometric warp error is at most this percentile of the
+    #: (eroded) mask's errors.
+    warp_percentile: float = 40.0
+    #: Side (px) of the box filter applied to the per-pixel warp error (1 = no filter); a 3x3 mean
+    #: makes the selection less sensitive to single-pixel interpolation noise.
+    warp_window: int = 3
+    #: Radius (m) of the neighbourhood counted by the density filter.
+    density_radius: float = 0.5
+    #: Fraction of points with the fewest neighbours dropped by the density filter.
+    density_drop_fraction: float = 0.01
+    #: Linkage distance (m) of the main-cluster selection (DBSCAN-like, ``min_samples = 1``).
+    cluster_eps: float = 0.8
+    #: Clouds larger than this are subsampled (deterministically) before filtering: it bounds the
+    #: memory of the radius graph (a near car gives ~10^4 points, ~10^3 neighbours each).
+    max_points: int = 3000
+    #: Minimum number of valid mask pixels needed to build a cloud at all.
+    min_pixels: int = 10
+
+
+@dataclass
+class VelocityConfig:
+    """Velocity by translation-only ICP (eq. 11-12, REFERENCE §6 step 5)."""
+
+    #: Frames whose cloud has more than this many points take part in the velocity estimate.
+    min_points: int = 100
+    #: Frame pairs further apart than this (frame indices) are skipped.
+    max_gap: int = 15
+    #: ICP iterations at most.
+    icp_max_iterations: int = 50
+    #: ICP stops when the translation update is below this (m).
+    icp_tolerance: float = 1e-4
+    #: Source clouds are subsampled to at most this many points for ICP (speed; the target keeps
+    #: all its points).
+    icp_max_points: int = 1000
+    #: Which frame pairs are registered: ``"all"`` (every pair within ``max_gap``) or
+    #: ``"consecutive"`` (neighbours in time among the usable frames).
+    pair_mode: str = "all"
+    #: Fraction of nearest-neighbour correspondences kept per ICP iteration (trimmed ICP: the two
+    #: clouds see partly different surfaces, the worst-matching points have no partner).
+    icp_trim_fraction: float = 0.8
+    #: Runs of :func:`vsrd_mi.init.icp.register_translation` whose trimmed RMS is within
+    #: ``icp_rms_tolerance_abs + icp_rms_tolerance_rel * best`` (m) of the best run count as
+    #: equally good; the smallest translation among them is taken. The absolute part is about
+    #: the stereo noise of a car's surface at 10-20 m.
+    icp_rms_tolerance_abs: float = 0.02
+    icp_rms_tolerance_rel: float = 0.1
+    #: Estimates further than ``outlier_mad_factor`` robust standard deviations (1.4826 * MAD of the
+    #: distance to the weighted median) from the weighted median are dropped as extreme.
+    outlier_mad_factor: float = 3.0
+    #: ... but an estimate within this distance (m / frame) of the median is never dropped (keeps
+    #: all of a consistent set whose MAD is ~0).
+    outlier_floor: float = 0.05
+    #: Cars move on the road: drop the vertical (gravity) component of the velocity in the
+    #: gravity-aligned optimisation frame, which otherwise only carries stereo noise.
+    horizontal_only: bool = True
+    #: Frame rate (Hz) used to convert the m/s thresholds below into metres per frame index
+    #: (KITTI-360 records at about 10 Hz).
+    frame_rate_hz: float = 10.0
+    #: Speed (m/s) above which an instance is dynamic. The paper quotes 0.03 m/s, but the ICP
+    #: speed of a parked car is far from 0: between two views the visible surface changes (rear,
+    #: then side) and stereo depth at 10-30 m is uncertain by decimetres, so parked cars show
+    #: apparent speeds of a few tenths of m/s. 1.5 m/s (5.4 km/h, walking pace) sits above that
+    #: noise and below the speed of cars in traffic; see ``benchmarks/init_accuracy.py``.
+    dynamic_speed_threshold: float = 1.5
+
+
+@dataclass
+class FootprintConfig:
+    """Centre correction: a typical-size box footprint fitted to the visible surface.
+
+    A stereo cloud covers only the surfaces facing the camera, so its mean lies in front of the
+    box centre. The fit places a box of (at least) typical car size so that its faces that are
+    visible from the observing cameras coincide with the near edges of the cloud, and so that the
+    cloud lies inside the box.
+    """
+
+    #: Typical car size (w, h, l) in metres (KITTI/KITTI-360 car medians: 1.6-1.8 x 1.5 x 4.0-4.4).
+    typical_size: tuple[float, float, float] = (1.8, 1.5, 4.3)
+    #: Upper bound of the size (w, h, l) used when the cloud is larger than typical (vans, pickups).
+    max_size: tuple[float, float, float] = (2.4, 3.0, 6.5)
+    #: Percentile (and 100 - it) taken as the near/far edge of the cloud along a box axis; robust to
+    #: stereo outliers.
+    edge_percentile: float = 5.0
+    #: A face counts as seen by a camera when the camera lies at least this far (m) in front of the
+    #: plane of the cloud's edge along that axis; otherwise the axis is seen edge-on and the box
+    #: is centred on the cloud's extent.
+    visibility_margin: float = 0.3
+    #: Correct the centre at all (False: the centre is the plain cloud mean, as in the paper).
+    enabled: bool = True
+    #: Frames within this many frame indices of the reference frame contribute their (motion
+    #: compensated) clouds to the footprint and orientation fit of a static car: a parked car seen
+    #: from several viewpoints shows more of its faces.
+    aggregate_static_offset: int = 25
+    #: The same for a dynamic car, whose clouds are moved by ``-v * dt``: velocity errors grow
+    #: with ``dt``, so fewer frames are merged.
+    aggregate_dynamic_offset: int = 5
+    #: The merged cloud is subsampled to at most this many points (speed).
+    max_fit_points: int = 20000
+
+
+@dataclass
+class OrientationConfig:
+    """Yaw of parked cars from the dominant horizontal direction of their cloud (WeakM3D-style)."""
+
+    #: Angular step (degrees) of the rectangle (L-shape) fit search over [0, 90).
+    search_step_deg: float = 1.0
+    #: Closeness criterion of the L-shape fit (Zhang et al. 2017): a point scores
+    #: ``1 / max(d, closeness_floor)`` with d its distance to the nearest rectangle edge. The floor
+    #: is about the stereo depth noise at 10-20 m, so that noise does not decide the fit.
+    closeness_floor: float = 0.1
+    #: Percentile (and 100 - it) taken as the rectangle edges in the L-shape fit (outlier robust).
+    edge_percentile: float = 2.0
+    #: When the cloud extends further than this (m) along one of the two rectangle axes, that axis
+    #: is the car's length (no car is this wide); otherwise the axis closer to the optimisation
+    #: frame's forward (z) direction is chosen: parked cars mostly line the road being driven.
+    length_evidence: float = 2.6
+
+
+@dataclass
+class InitConfig:
+    """All settings of the initialisation stage."""
+
+    #: Where depth comes from: ``"sgbm"`` (stereo matching), ``"dir"`` (precomputed depth maps in
+    #: ``depth_dir``) or ``"none"`` (no initialisation; callers use their default box).
+    depth_mode: str = "sgbm"
+    #: Directory of ``%010d.png`` (uint16, metres * 256) or ``%010d.npy`` (float metres) depth maps.
+    depth_dir: str | None = None
+    #: Instances need at least this many points in a frame to be located from that frame alone
+    #: (REFERENCE §6 step 6; the paper's text says 100, the code 120).
+    min_points_location: int = 120
+    #: Instances whose clouds hold fewer points than this in every frame get no initialisation.
+    min_points_any: int = 20
+    stereo: StereoConfig = field(default_factory=StereoConfig)
+    cloud: PointCloudConfig = field(default_factory=PointCloudConfig)
+    velocity: VelocityConfig = field(default_factory=VelocityConfig)
+    footprint: FootprintConfig = field(default_factory=FootprintConfig)
+    orientation: OrientationConfig = field(default_factory=OrientationConfig)
+
+    def __post_init__(self) -> None:
+        if self.depth_mode not in DEPTH_MODES:
+            raise ValueError(f"depth_mode must be one of {DEPTH_MODES}, got {self.depth_mode!r}")
+        if self.depth_mode == "dir" and not self.depth_dir:
+            raise ValueError("depth_mode 'dir' needs depth_dir")
