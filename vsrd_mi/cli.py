@@ -13,6 +13,7 @@ import sys
 
 #: Modules contributing sub-commands, in the order they appear in ``vsrd-mi --help``.
 SUBCOMMAND_MODULES: tuple[str, ...] = (
+    "vsrd_mi.data.cli",
     "vsrd_mi.evaluate.cli",
 )
 

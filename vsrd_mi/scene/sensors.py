@@ -9,6 +9,9 @@ Mitsuba's camera frame is +x left, +y up, +z forward, so a sensor's ``to_world``
 ``u`` is the film position ``(u + 0.5) / W``. The principal point ``(cx, cy)`` therefore lies on the
 optical axis when ``principal_point_offset = 0.5 - ((cx, cy) + 0.5) / (W, H)``.
 
+Mitsuba starts a ray on the near plane; the near clip is set to :data:`NEAR_CLIP` so that ray origins
+are the camera centre to within ~1e-6 m.
+
 The frame offset ``dt`` of a frame is carried as the ray time: ``shutter_open = shutter_close = dt``
 (exposure 0), so a ray sampled at ``time = sensor.shutter_open()`` has ``ray.time == dt``.
 """
@@ -22,6 +25,11 @@ import mitsuba as mi
 
 #: OpenCV camera -> Mitsuba camera axes (flip x and y).
 CV_TO_MITSUBA = np.diag([-1.0, -1.0, 1.0, 1.0])
+
+#: Near clip distance (m). Mitsuba starts a camera ray on the near plane; this keeps ray origins
+#: within ~1e-6 m of the camera centre, so distances along a ray are distances from the camera
+#: (directions are unaffected: they stay accurate to ~1e-7 for any near clip).
+NEAR_CLIP = 1e-6
 
 #: Relative tolerance on ``fx == fy``: Mitsuba's perspective camera has square pixels.
 SQUARE_PIXEL_RTOL = 1e-6
@@ -67,6 +75,7 @@ def perspective_sensor(K: np.ndarray, cam_to_world: np.ndarray, image_size: tupl
     sensor = {
         "type": "perspective",
         **intrinsics_to_mitsuba(K, (W, H)),
+        "near_clip": NEAR_CLIP,
         "shutter_open": float(frame_offset),
         "shutter_close": float(frame_offset),
         "to_world": to_mitsuba_transform(np.asarray(cam_to_world, dtype=np.float64) @ CV_TO_MITSUBA),
