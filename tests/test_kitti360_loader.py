@@ -117,6 +117,15 @@ def test_sequence_name():
     assert sequence_name("my_clip") == "my_clip"
 
 
+def test_full_kitti360_calibration_file_with_text_entries(tmp_path):
+    """Full KITTI-360 calibration files also hold non-numeric entries such as calib_time."""
+    kw.write_calibration(tmp_path, K, (W, H), baseline=0.6)
+    path = tmp_path / "calibration" / "perspective.txt"
+    path.write_text("calib_time: 09-Jan-2013 15:40:52\ncorner_dist: 9.95e-02\n" + path.read_text())
+    cal = read_calibration(tmp_path)
+    assert np.allclose(cal.K, K) and cal.image_size == (W, H) and cal.baseline == pytest.approx(0.6)
+
+
 def test_gravity_rotation_removes_known_pitch():
     for pitch in (-0.2, 0.0, 0.05, 0.3):
         Rx = gravity_rotation(camera_pose(0, pitch))

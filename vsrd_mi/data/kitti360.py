@@ -119,8 +119,12 @@ def _parse_floats(path: Path, lineno: int, tokens: list[str]) -> np.ndarray:
     return values
 
 
-def read_key_values(path: str | Path) -> dict[str, np.ndarray]:
-    """Read ``"KEY: v1 v2 ..."`` lines into arrays (KITTI calibration text format)."""
+def read_key_values(path: str | Path) -> dict[str, tuple[int, list[str]]]:
+    """Read ``"KEY: v1 v2 ..."`` lines (KITTI calibration text format) as ``key -> (line, tokens)``.
+
+    Values are only converted when asked for (:func:`key_floats`), so entries such as
+    ``calib_time: 09-Jan-2013 ...`` in full KITTI-360 files do not get in the way.
+    """
     path = Path(path)
     try:
         text = path.read_text()
@@ -128,7 +132,7 @@ def read_key_values(path: str | Path) -> dict[str, np.ndarray]:
         raise DataError(path, "missing calibration file") from None
     except (OSError, UnicodeDecodeError) as exc:
         raise DataError(path, f"cannot read calibration file: {exc}") from None
-    out: dict[str, np.ndarray] = {}
+    out: dict[str, tuple[int, list[str]]] = {}
     for lineno, line in enumerate(text.splitlines(), start=1):
         if not line.strip():
             continue
@@ -138,16 +142,18 @@ def read_key_values(path: str | Path) -> dict[str, np.ndarray]:
         key = key.strip()
         if key in out:
             raise DataError(path, f"line {lineno}: duplicate key {key!r}")
-        out[key] = _parse_floats(path, lineno, rest.split())
+        out[key] = (lineno, rest.split())
     return out
 
 
-def _get(path: Path, values: dict[str, np.ndarray], key: str, count: int) -> np.ndarray:
+def key_floats(path: Path, values: dict[str, tuple[int, list[str]]], key: str, count: int) -> np.ndarray:
+    """The ``count`` finite numbers of ``key``; DataError naming the file, key and line otherwise."""
     if key not in values:
         raise DataError(path, f"missing key {key!r}")
-    if values[key].size != count:
-        raise DataError(path, f"key {key!r} has {values[key].size} values, expected {count}")
-    return values[key]
+    lineno, tokens = values[key]
+    if len(tokens) != count:
+        raise DataError(path, f"line {lineno}: key {key!r} has {len(tokens)} values, expected {count}")
+    return _parse_floats(path, lineno, tokens)
 
 
 def read_calibration(root: str | Path) -> Calibration:
@@ -155,10 +161,10 @@ def read_calibration(root: str | Path) -> Calibration:
     root = Path(root)
     persp = calibration_path(root)
     values = read_key_values(persp)
-    P0 = _get(persp, values, "P_rect_00", 12).reshape(3, 4)
-    P1 = _get(persp, values, "P_rect_01", 12).reshape(3, 4)
-    R0 = _get(persp, values, "R_rect_00", 9).reshape(3, 3)
-    size = _get(persp, values, "S_rect_00", 2)
+    P0 = key_floats(persp, values, "P_rect_00", 12).reshape(3, 4)
+    P1 = key_floats(persp, values, "P_rect_01", 12).reshape(3, 4)
+    R0 = key_floats(persp, values, "R_rect_00", 9).reshape(3, 3)
+    size = key_floats(persp, values, "S_rect_00", 2)
     width, height = int(round(size[0])), int(round(size[1]))
     if width <= 0 or height <= 0 or not np.allclose(size, (width, height)):
         raise DataError(persp, f"S_rect_00 must be two positive integers, got {size.tolist()}")
@@ -172,7 +178,7 @@ def read_calibration(root: str | Path) -> Calibration:
     pose_path = cam_to_pose_path(root)
     if pose_path.exists():
         T_pose = np.eye(4)
-        T_pose[:3, :4] = _get(pose_path, read_key_values(pose_path), "image_00", 12).reshape(3, 4)
+        T_pose[:3, :4] = key_floats(pose_path, read_key_values(pose_path), "image_00", 12).reshape(3, 4)
     return Calibration(P_rect_00=P0, P_rect_01=P1, R_rect_00=R0, K=P0[:3, :3].copy(),
                        image_size=(width, height), baseline=baseline, T_cam0_to_pose=T_pose)
 
