@@ -258,6 +258,21 @@ def _devkit_statistics(ov, ig_gt, ig_det, scores, min_overlap, compute_fp, thres
     return tp, fp, fn, v
 
 
+def _get_thresholds(v, n_groundtruth, n_sample_pts=41):
+    """The devkit's getThresholds, line by line."""
+    t = []
+    v = sorted(v, reverse=True)
+    current_recall = 0.0
+    for i in range(len(v)):
+        l_recall = (i + 1) / n_groundtruth
+        r_recall = (i + 2) / n_groundtruth if i < len(v) - 1 else l_recall
+        if (r_recall - current_recall) < (current_recall - l_recall) and i < len(v) - 1:
+            continue
+        current_recall += 1.0 / (n_sample_pts - 1.0)
+        t.append(v[i])
+    return t
+
+
 def _reference_aps(frames, min_overlap):
     n_gt = sum(int(np.sum(~f.gt_ignored)) for f in frames)
     args = [(f.overlap.tolist(), f.gt_ignored.tolist(), f.det_ignored.tolist(), f.scores.tolist())
@@ -268,7 +283,7 @@ def _reference_aps(frames, min_overlap):
         return np.sum([_devkit_statistics(*a, min_overlap, True, t)[:3] for a in args], axis=0)
 
     # devkit curve
-    thresholds = devkit_thresholds(v, n_gt)
+    thresholds = _get_thresholds(v, n_gt)
     prec = [0.0] * 41
     for i, t in enumerate(thresholds):
         tp, fp, _ = totals(t)
@@ -458,6 +473,27 @@ def test_cli_nested_layout_frames_and_misses(dataset, tmp_path, capsys):
     # without --frames only files count: frames 0 and 2
     result = evaluate_sequence(tmp_path / "out", dataset, SEQ)
     assert result["frames"] == [0, 2] and result["frames_without_predictions"] == []
+
+
+def test_visible_only_keeps_ground_truth_present_in_the_instance_map(dataset, tmp_path, capsys):
+    pred = tmp_path / "pred"
+    _write_predictions(pred, 0, _camera_boxes(0)[::2], [0.9, 0.7])  # the hard-only car not labelled
+    args = ["eval", "--pred", str(pred), "--gt", str(dataset), "--sequence", "7", "--json"]
+    assert main(args) == 0
+    assert ap(json.loads(capsys.readouterr().out), "3d", "0.7", "hard")["max_recall"] == pytest.approx(2 / 3)
+    assert main(args + ["--visible-only"]) == 1
+    assert "instance" in capsys.readouterr().err  # no instance maps yet
+    inst_dir = dataset / "data_2d_semantics" / "train" / SEQ / "image_00" / "instance"
+    inst_dir.mkdir(parents=True)
+    inst = np.zeros((IMG_H, IMG_W), np.uint16)
+    inst[100:200, 100:300] = 26001  # car 1 and car 3 are visible, car 2 is hidden
+    inst[120:220, 400:600] = 26003
+    inst[0:10, 0:10] = 7  # road (stuff)
+    cv2.imwrite(str(inst_dir / "0000000000.png"), inst)
+    assert main(args + ["--visible-only"]) == 0
+    result = json.loads(capsys.readouterr().out)
+    assert ap(result, "3d", "0.7", "hard")["n_gt"] == 2
+    assert ap(result, "3d", "0.7", "hard")["R40"] == pytest.approx(100.0)
 
 
 def test_cli_errors(dataset, tmp_path, capsys):

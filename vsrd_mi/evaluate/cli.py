@@ -17,6 +17,12 @@ AP_COLUMNS = {
                ("easy", "devkit_R11"), ("hard", "devkit_R11")],
 }
 METRIC_LABELS = {METRIC_BEV: "AP_BEV", METRIC_3D: "AP_3D"}
+#: Table titles of the two precision curves (their definitions are in the JSON ``protocol``).
+CURVE_TITLES = {
+    "exact": "AP, exact precision curve (every score threshold)",
+    "devkit": "AP, KITTI devkit curve (<= 41 kept thresholds; reads up to ~2 AP high on large "
+              "sets, too low with fewer than 41 ground-truth boxes)",
+}
 
 
 def parse_frames(text: str) -> list[int]:
@@ -47,7 +53,7 @@ def format_table(result: dict) -> str:
              f"{result['n_pred_total']} Car predictions; counted GT "
              + ", ".join(f"{d} {c['n_gt']}" for d, c in counts.items())]
     for curve, columns in AP_COLUMNS.items():
-        lines += ["", f"AP ({curve} precision curve: {result['protocol']['precision_curves'][curve]})",
+        lines += ["", CURVE_TITLES[curve],
                   f"{'':14s}" + "".join(f"{d.capitalize() + ' ' + k.split('_')[-1]:>10s}"
                                         for d, k in columns)]
         for metric in (METRIC_BEV, METRIC_3D):

@@ -77,27 +77,46 @@ def match_true_positive_scores(frame: FrameMatchInput, min_overlap: float) -> li
     return tp_scores
 
 
-def count_at_threshold(frame: FrameMatchInput, min_overlap: float, threshold: float) -> Counts:
-    """(TP, FP, FN) of one frame counting only detections with score >= ``threshold``."""
+def counts_at_thresholds(frame: FrameMatchInput, min_overlap: float,
+                         thresholds: np.ndarray) -> np.ndarray:
+    """(TP, FP, FN) of one frame, shape (T, 3), for each score threshold in ``thresholds`` (T,).
+
+    Row ``t`` counts only detections with score >= ``thresholds[t]``; the devkit's sequential pass
+    over the ground truth runs once, vectorised over the thresholds.
+    """
+    thresholds = np.asarray(thresholds, dtype=np.float64).reshape(-1)
     gt_ignored = np.asarray(frame.gt_ignored, dtype=bool)
     det_ignored = np.asarray(frame.det_ignored, dtype=bool)
-    active = np.asarray(frame.scores, dtype=np.float64) >= threshold
-    assigned = np.zeros(len(det_ignored), dtype=bool)
-    tp = fn = 0
+    active = np.asarray(frame.scores, dtype=np.float64)[None, :] >= thresholds[:, None]  # (T, D)
+    above = np.asarray(frame.overlap, dtype=np.float64) > min_overlap  # (G, D)
+    assigned = np.zeros_like(active)
+    tp = np.zeros(len(thresholds), dtype=np.int64)
+    fn = np.zeros(len(thresholds), dtype=np.int64)
+    rows = np.arange(len(thresholds))
+    if len(det_ignored) == 0:
+        fn += int(np.count_nonzero(~gt_ignored))
+        return np.stack([tp, tp, fn], axis=1)
     for i in range(len(gt_ignored)):
-        candidates = active & ~assigned & (frame.overlap[i] > min_overlap)
-        counted = candidates & ~det_ignored
-        if np.any(counted):
-            j = int(np.argmax(np.where(counted, frame.overlap[i], -np.inf)))
-        elif np.any(candidates):
-            j = int(np.argmax(candidates))  # the first ignored candidate
-        else:
+        if not above[i].any():  # nothing to match at any threshold
             fn += int(not gt_ignored[i])
             continue
-        assigned[j] = True
-        if not gt_ignored[i] and not det_ignored[j]:
-            tp += 1
-    fp = int(np.count_nonzero(active & ~assigned & ~det_ignored))
+        candidates = active & ~assigned & above[i]
+        counted = candidates & ~det_ignored
+        has_counted, has_candidate = counted.any(axis=1), candidates.any(axis=1)
+        # highest overlap among counted candidates (first on ties), else the first ignored one
+        j = np.where(has_counted, np.argmax(np.where(counted, frame.overlap[i], -np.inf), axis=1),
+                     np.argmax(candidates, axis=1))
+        assigned[rows[has_candidate], j[has_candidate]] = True
+        if not gt_ignored[i]:
+            tp += has_counted
+            fn += ~has_candidate
+    fp = np.count_nonzero(active & ~assigned & ~det_ignored, axis=1)
+    return np.stack([tp, fp, fn], axis=1)
+
+
+def count_at_threshold(frame: FrameMatchInput, min_overlap: float, threshold: float) -> Counts:
+    """(TP, FP, FN) of one frame counting only detections with score >= ``threshold``."""
+    tp, fp, fn = (int(v) for v in counts_at_thresholds(frame, min_overlap, np.array([threshold]))[0])
     return Counts(tp=tp, fp=fp, fn=fn)
 
 
@@ -111,11 +130,6 @@ def frame_threshold_events(frame: FrameMatchInput, min_overlap: float
     are that base plus the sum of the deltas of the levels >= ``t``.
     """
     levels = np.unique(np.asarray(frame.scores, dtype=np.float64))[::-1]
-    deltas = np.zeros((len(levels), 3), dtype=np.int64)
-    previous = np.array([0, 0, frame.n_counted_gt])
-    for k, level in enumerate(levels):
-        c = count_at_threshold(frame, min_overlap, float(level))
-        current = np.array([c.tp, c.fp, c.fn])
-        deltas[k] = current - previous
-        previous = current
-    return levels, deltas
+    counts = counts_at_thresholds(frame, min_overlap, levels)
+    previous = np.concatenate([[[0, 0, frame.n_counted_gt]], counts[:-1]])
+    return levels, counts - previous
