@@ -14,6 +14,7 @@ import sys
 #: Modules contributing sub-commands, in the order they appear in ``vsrd-mi --help``.
 SUBCOMMAND_MODULES: tuple[str, ...] = (
     "vsrd_mi.data.cli",
+    "vsrd_mi.data.synth_cli",
     "vsrd_mi.evaluate.cli",
 )
 

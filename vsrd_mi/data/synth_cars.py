@@ -1,0 +1,218 @@
+"""Car shapes for the synthetic KITTI-360 generator: CC0 meshes and procedural cars.
+
+Every car model is a triangle mesh in the *car frame* of KITTI-360 boxes: x forward (heading),
+y left, z up, metres, with a per-face material (:data:`BODY`, :data:`GLASS`, :data:`TYRE`).
+The ground-truth box of a placed car is the tight axis-aligned box of its vertices in this frame
+(:attr:`CarModel.box_min` / :attr:`CarModel.box_max`), so a model need not be centred.
+
+Mesh files (the two bundled CC0 meshes, or any given with ``--mesh``) follow the convention of
+``vsrd_mi/data/assets/README.md``: metres, +Y up, length along Z with the front at +Z, origin at
+the bottom centre. The meshes are not watertight: they are rendered by ray casting, never voxelised.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import trimesh
+
+from ..errors import DataError
+
+#: Per-face materials of a car model.
+BODY, GLASS, TYRE = 0, 1, 2
+
+#: Folder of the bundled CC0 car meshes.
+ASSET_DIR = Path(__file__).resolve().parent / "assets"
+
+#: Mesh-file axes (x = width/left, y = up, z = length/front) -> car frame (x fwd, y left, z up).
+MESH_TO_CAR = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+
+
+@dataclass(frozen=True)
+class CarModel:
+    """A car mesh in the car frame (x forward, y left, z up), lowest vertex at z = 0."""
+
+    name: str
+    vertices: np.ndarray  # (V, 3) float64
+    faces: np.ndarray  # (F, 3) int64
+    materials: np.ndarray  # (F,) int8, one of BODY / GLASS / TYRE
+
+    @property
+    def box_min(self) -> np.ndarray:
+        return self.vertices.min(axis=0)
+
+    @property
+    def box_max(self) -> np.ndarray:
+        return self.vertices.max(axis=0)
+
+    @property
+    def size(self) -> np.ndarray:
+        """Tight box extent ``(length, width, height)`` along the car frame's axes."""
+        return self.box_max - self.box_min
+
+    @property
+    def box_centre(self) -> np.ndarray:
+        """Centre of the tight box in the car frame."""
+        return 0.5 * (self.box_min + self.box_max)
+
+
+@dataclass(frozen=True)
+class ProceduralCarConfig:
+    """Ranges of the procedural car shapes (metres); one row per body type.
+
+    Each type is ``(length range, width range, height range)``; the types cover hatchbacks,
+    sedans, SUVs and vans up to 5.2 m x 2.3 m x 2.2 m.
+    """
+
+    types: tuple[tuple[str, tuple[float, float], tuple[float, float], tuple[float, float]], ...] = (
+        ("hatchback", (3.6, 4.3), (1.65, 1.82), (1.40, 1.55)),
+        ("sedan", (4.3, 5.0), (1.72, 1.90), (1.36, 1.50)),
+        ("suv", (4.3, 5.0), (1.80, 2.05), (1.60, 1.85)),
+        ("van", (4.6, 5.2), (1.90, 2.30), (1.90, 2.20)),
+    )
+    #: Wheel radius range.
+    wheel_radius: tuple[float, float] = (0.29, 0.38)
+    #: Tyre width.
+    wheel_width: float = 0.21
+    #: Distance between the body bottom and the ground, as a fraction of the wheel radius.
+    clearance_fraction: tuple[float, float] = (0.45, 0.7)
+    #: Height of the belt line (top of the lower body) as a fraction of the car height.
+    belt_fraction: tuple[float, float] = (0.50, 0.60)
+    #: Roof width as a fraction of the body width.
+    roof_width_fraction: tuple[float, float] = (0.74, 0.86)
+    #: Number of facets around a wheel.
+    wheel_sections: int = 14
+
+
+def _hull(points: np.ndarray) -> trimesh.Trimesh:
+    return trimesh.convex.convex_hull(points)
+
+
+def _cabin_profile(kind: str, length: float, rng: np.random.Generator) -> tuple[float, ...]:
+    """Cabin bottom (x0, x1) and top (x0, x1) along the car's length, rear at ``-length/2``."""
+    half = 0.5 * length
+    j = lambda a, b: float(rng.uniform(a, b))  # noqa: E731  (local jitter helper)
+    if kind == "hatchback":
+        b0, b1 = -half + j(0.05, 0.15), half - j(1.0, 1.25)
+        t0, t1 = -half + j(0.25, 0.4), half - j(1.8, 2.1)
+    elif kind == "sedan":
+        b0, b1 = -half + j(0.85, 1.05), half - j(1.2, 1.45)
+        t0, t1 = -half + j(1.3, 1.5), half - j(2.0, 2.3)
+    elif kind == "suv":
+        b0, b1 = -half + j(0.05, 0.15), half - j(1.05, 1.25)
+        t0, t1 = -half + j(0.15, 0.3), half - j(1.65, 1.9)
+    elif kind == "van":
+        b0, b1 = -half + j(0.02, 0.06), half - j(0.45, 0.7)
+        t0, t1 = -half + j(0.03, 0.08), half - j(1.0, 1.3)
+    else:
+        raise ValueError(f"unknown body type {kind!r}")
+    return b0, b1, t0, max(t1, t0 + 0.5)
+
+
+def procedural_car(rng: np.random.Generator, config: ProceduralCarConfig = ProceduralCarConfig(),
+                   kind: str | None = None) -> CarModel:
+    """A random car: lower body box + cabin (convex hull, windows) + four cylinder wheels.
+
+    ``kind`` picks a body type from ``config.types`` (random when None). The result's tight box is
+    exactly (length, width, height) drawn from that type's ranges.
+    """
+    names = [t[0] for t in config.types]
+    idx = int(rng.integers(len(names))) if kind is None else names.index(kind)
+    name, l_rng, w_rng, h_rng = config.types[idx]
+    length, width, height = (float(rng.uniform(*r)) for r in (l_rng, w_rng, h_rng))
+    radius = float(rng.uniform(*config.wheel_radius))
+    clearance = radius * float(rng.uniform(*config.clearance_fraction))
+    belt = height * float(rng.uniform(*config.belt_fraction))
+    roof_w = width * float(rng.uniform(*config.roof_width_fraction))
+
+    parts: list[tuple[trimesh.Trimesh, int]] = []
+    body = trimesh.creation.box(bounds=[[-length / 2, -width / 2, clearance],
+                                        [length / 2, width / 2, belt]])
+    parts.append((body, BODY))
+
+    b0, b1, t0, t1 = _cabin_profile(name, length, rng)
+    cw = 0.97 * width
+    cabin_pts = np.array([[x, sy * w / 2, z] for (x0, x1, w, z) in ((b0, b1, cw, belt),
+                                                                    (t0, t1, roof_w, height))
+                          for x in (x0, x1) for sy in (-1, 1)])
+    cabin = _hull(cabin_pts)
+    parts.append((cabin, GLASS))  # the roof is re-labelled BODY below
+
+    overhang = radius + float(rng.uniform(0.45, 0.75))
+    for sx in (-1.0, 1.0):
+        for sy in (-1.0, 1.0):
+            wheel = trimesh.creation.cylinder(radius=radius, height=config.wheel_width,
+                                              sections=config.wheel_sections)
+            wheel.apply_transform(trimesh.transformations.rotation_matrix(np.pi / 2, [1, 0, 0]))
+            wheel.apply_translation([sx * (length / 2 - overhang),
+                                     sy * (width / 2 - config.wheel_width / 2 - 0.01), radius])
+            parts.append((wheel, TYRE))
+
+    verts, faces, mats = [], [], []
+    offset = 0
+    for mesh, mat in parts:
+        v = np.asarray(mesh.vertices, dtype=np.float64)
+        f = np.asarray(mesh.faces, dtype=np.int64)
+        m = np.full(len(f), mat, dtype=np.int8)
+        if mesh is cabin:  # roof: faces facing up are painted like the body
+            m[np.asarray(mesh.face_normals)[:, 2] > 0.9] = BODY
+        verts.append(v)
+        faces.append(f + offset)
+        mats.append(m)
+        offset += len(v)
+    verts = np.concatenate(verts)
+    verts[:, 2] -= verts[:, 2].min()  # faceted wheels: put the lowest vertex on the ground
+    return CarModel(f"procedural-{name}", verts, np.concatenate(faces), np.concatenate(mats))
+
+
+#: Upper part of a mesh-file car (fraction of its height) whose steep faces are painted as glass.
+GLASS_HEIGHT_FRACTION = 0.62
+#: Faces whose |normal z| is below this are "steep" (windows rather than roof/bonnet).
+GLASS_MAX_NORMAL_Z = 0.85
+
+
+def load_car_mesh(path: str | Path) -> CarModel:
+    """Load a car mesh file (see module docstring for its axes) into the car frame.
+
+    Raises :class:`~vsrd_mi.errors.DataError` when the file is missing, unreadable, holds no
+    triangles, or has non-finite or degenerate geometry.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise DataError(path, "car mesh file does not exist")
+    try:
+        loaded = trimesh.load(path, process=False, force="mesh")
+    except Exception as exc:  # trimesh raises many types for corrupt files
+        raise DataError(path, f"cannot read car mesh: {exc}") from exc
+    if not isinstance(loaded, trimesh.Trimesh) or len(loaded.faces) == 0:
+        raise DataError(path, "car mesh holds no triangles")
+    verts = np.asarray(loaded.vertices, dtype=np.float64)
+    faces = np.asarray(loaded.faces, dtype=np.int64)
+    if not np.all(np.isfinite(verts)):
+        raise DataError(path, "car mesh has non-finite vertex coordinates")
+    if faces.min() < 0 or faces.max() >= len(verts):
+        raise DataError(path, "car mesh faces index missing vertices")
+    verts = verts @ MESH_TO_CAR.T
+    extent = verts.max(axis=0) - verts.min(axis=0)
+    if np.any(extent <= 1e-3):
+        raise DataError(path, f"car mesh is degenerate (extent {extent.round(4).tolist()} m)")
+    verts[:, 2] -= verts[:, 2].min()
+    tri = verts[faces]
+    normals = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    norm = np.linalg.norm(normals, axis=1)
+    nz = np.divide(np.abs(normals[:, 2]), norm, out=np.ones_like(norm), where=norm > 0)
+    high = tri[:, :, 2].mean(axis=1) > GLASS_HEIGHT_FRACTION * extent[2]
+    mats = np.where(high & (nz < GLASS_MAX_NORMAL_Z), GLASS, BODY).astype(np.int8)
+    return CarModel(path.stem, verts, faces, mats)
+
+
+def bundled_mesh_paths() -> list[Path]:
+    """The CC0 car meshes shipped with vsrd-mi."""
+    return sorted(ASSET_DIR.glob("*.ply"))
+
+
+def scaled(model: CarModel, factor: float) -> CarModel:
+    """The model uniformly scaled about its bottom centre (z = 0 stays on the ground)."""
+    return CarModel(model.name, model.vertices * factor, model.faces, model.materials)

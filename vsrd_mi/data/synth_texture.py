@@ -1,0 +1,129 @@
+"""Procedural colours of the synthetic world: piecewise-constant textures of the 3D point.
+
+Every colour is a function of the surface point only (world road coordinates, facade coordinates
+or the car's own frame), never of the pixel, so the left and right images of a stereo pair show the
+same texture where they see the same point. Cells are hashed integers (splitmix64), quantised to a
+few levels so that PNG compresses the large constant patches well. Shading is Lambertian with a
+fixed sun and ambient light, hence view independent.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .synth_cars import GLASS, TYRE
+from .synth_config import TextureConfig
+
+_GOLDEN = np.uint64(0x9E3779B97F4A7C15)
+_MIX1 = np.uint64(0xBF58476D1CE4E5B9)
+_MIX2 = np.uint64(0x94D049BB133111EB)
+
+# Salts that decorrelate the textures of different surfaces.
+SALT_ROAD, SALT_KERB, SALT_SIDEWALK, SALT_TERRAIN, SALT_WINDOW = 11, 12, 13, 14, 15
+SALT_CAR_GREY, SALT_CAR_ADD = 21, 22
+
+
+def _splitmix(h: np.ndarray) -> np.ndarray:
+    h = h ^ (h >> np.uint64(30))
+    h = h * _MIX1
+    h = h ^ (h >> np.uint64(27))
+    h = h * _MIX2
+    return h ^ (h >> np.uint64(31))
+
+
+def hash01(salt: int | np.ndarray, *cells: np.ndarray) -> np.ndarray:
+    """Uniform pseudo-random numbers in [0, 1) from integer cell coordinates and a salt."""
+    with np.errstate(over="ignore"):
+        h = _splitmix(np.asarray(salt).astype(np.int64).astype(np.uint64) * _GOLDEN + _GOLDEN)
+        for c in cells:
+            h = _splitmix(h ^ (np.asarray(c).astype(np.int64).astype(np.uint64) * _GOLDEN))
+    return (h >> np.uint64(11)).astype(np.float64) / float(1 << 53)
+
+
+def levels01(x: np.ndarray, levels: int) -> np.ndarray:
+    """Quantise [0, 1) values to ``levels`` evenly spaced values in [0, 1]."""
+    return np.floor(x * levels) / max(levels - 1, 1)
+
+
+def cell_value(salt: int | np.ndarray, coords: list[np.ndarray], sizes: list[float],
+               levels: int) -> np.ndarray:
+    """Quantised random value of the cell of ``coords`` on a grid of the given cell sizes."""
+    return levels01(hash01(salt, *[np.floor(c / s) for c, s in zip(coords, sizes)]), levels)
+
+
+def _grey(v: np.ndarray) -> np.ndarray:
+    return np.repeat(v[:, None], 3, axis=1)
+
+
+def road_rgb(s: np.ndarray, n: np.ndarray, lane_width: float, cfg: TextureConfig) -> np.ndarray:
+    """Asphalt cells with a dashed centre line and solid lines between lanes and parking strips."""
+    lo, hi = cfg.road_grey
+    grey = lo + (hi - lo) * cell_value(SALT_ROAD, [s, n], list(cfg.road_cell), cfg.levels)
+    half = 0.5 * cfg.marking_width
+    centre = (np.abs(n) < half) & (np.mod(s, cfg.dash_period) < cfg.dash_length)
+    edge = np.abs(np.abs(n) - lane_width) < half
+    grey = np.where(centre | edge, cfg.marking_grey, grey)
+    return _grey(grey)
+
+
+def kerb_rgb(s: np.ndarray, cfg: TextureConfig) -> np.ndarray:
+    return _grey(150.0 + 55.0 * cell_value(SALT_KERB, [s], [cfg.kerb_cell], cfg.levels))
+
+
+def sidewalk_rgb(s: np.ndarray, n: np.ndarray, cfg: TextureConfig) -> np.ndarray:
+    v = cell_value(SALT_SIDEWALK, [s, n], [cfg.sidewalk_cell] * 2, cfg.levels)
+    return np.array([175.0, 160.0, 150.0]) * (0.7 + 0.5 * v)[:, None]
+
+
+def terrain_rgb(x: np.ndarray, y: np.ndarray, cfg: TextureConfig) -> np.ndarray:
+    v = cell_value(SALT_TERRAIN, [x, y], [cfg.terrain_cell] * 2, cfg.levels)
+    return np.array([95.0, 120.0, 60.0]) * (0.6 + 0.7 * v)[:, None]
+
+
+def facade_rgb(u: np.ndarray, z: np.ndarray, base_rgb: np.ndarray, salt: np.ndarray,
+               cfg: TextureConfig) -> np.ndarray:
+    """Brick cells in the building's colour with a grid of dark windows above the ground floor.
+
+    ``u`` runs horizontally along the facade, ``z`` is the height; ``base_rgb`` (N, 3) and
+    ``salt`` (N,) are per point (from the building that was hit).
+    """
+    bu, bz = cfg.facade_cell
+    v = cell_value(salt, [u, z + 0.5 * bu * np.floor(z / bz)], [bu, bz], cfg.levels)
+    rgb = base_rgb * (0.78 + 0.4 * v)[:, None]
+    gu, gz = cfg.window_grid
+    wu, wz = cfg.window_size
+    floor_idx = np.floor(z / gz)
+    window = (np.mod(u, gu) < wu) & (np.mod(z, gz) > 0.5 * (gz - wz)) \
+        & (np.mod(z, gz) < 0.5 * (gz + wz)) & (floor_idx >= 1)
+    shade = cell_value(salt + SALT_WINDOW, [np.floor(u / gu), floor_idx], [1.0, 1.0], cfg.levels)
+    glass = np.array(cfg.glass_rgb, dtype=np.float64) * (0.6 + 0.9 * shade)[:, None]
+    return np.where(window[:, None], glass, rgb)
+
+
+def car_rgb(local: np.ndarray, material: np.ndarray, paint: np.ndarray, salt: np.ndarray,
+            cfg: TextureConfig) -> np.ndarray:
+    """Paint / glass / tyre colours modulated by 3D cells in the car's own frame."""
+    cells = [local[:, 0], local[:, 1], local[:, 2]]
+    size = [cfg.car_cell] * 3
+    v = cell_value(salt + SALT_CAR_GREY, cells, size, cfg.levels) - 0.5
+    w = cell_value(salt + SALT_CAR_ADD, cells, size, cfg.levels) - 0.5
+    body = paint * (1.0 + cfg.car_modulation * v)[:, None] + (cfg.car_additive * w)[:, None]
+    glass = np.array(cfg.glass_rgb, dtype=np.float64) * (1.0 + 0.8 * v)[:, None]
+    tyre = np.array(cfg.tyre_rgb, dtype=np.float64) * (1.0 + 0.8 * v)[:, None]
+    out = np.where((material == GLASS)[:, None], glass, body)
+    return np.where((material == TYRE)[:, None], tyre, out) if np.any(material == TYRE) else out
+
+
+def sky_rgb(directions: np.ndarray, cfg: TextureConfig) -> np.ndarray:
+    """Sky gradient from the horizon to the zenith by the elevation of the (world) ray direction."""
+    d = directions / np.linalg.norm(directions, axis=1, keepdims=True)
+    t = np.clip(d[:, 2] * cfg.sky_gradient, 0.0, 1.0)[:, None]
+    return (1 - t) * np.array(cfg.sky_horizon, dtype=np.float64) + t * np.array(cfg.sky_zenith)
+
+
+def lambert(normals: np.ndarray, cfg: TextureConfig) -> np.ndarray:
+    """Two-sided Lambertian shading factor (ambient + diffuse * |n . sun|)."""
+    sun = np.asarray(cfg.sun, dtype=np.float64)
+    sun = sun / np.linalg.norm(sun)
+    return cfg.ambient + cfg.diffuse * np.abs(normals @ sun)
+
