@@ -156,3 +156,17 @@ def test_against_monte_carlo():
         exact = iou3d(a, b)
         assert 0.0 < exact < 1.0
         assert abs(exact - p) < 3 * sigma + 1e-9, (exact, p, sigma)
+
+
+def test_identity_symmetry_and_bounds_on_random_boxes():
+    rng = np.random.default_rng(7)
+    for _ in range(200):
+        a, b = (car(x=rng.uniform(-100, 100), y=rng.uniform(-2, 3), z=rng.uniform(0.5, 100),
+                    yaw=rng.uniform(-10, 10), size=rng.uniform(0.1, 6.0, 3)) for _ in range(2))
+        b = Box3D(centre=a.centre + rng.normal(0, 1.0, 3), size=b.size, yaw=b.yaw)
+        assert abs(iou3d(a, a) - 1.0) < 1e-9 and abs(bev_iou(a, a) - 1.0) < 1e-9
+        bev_ab, iou_ab = iou_matrices([a], [b])
+        bev_ba, iou_ba = iou_matrices([b], [a])
+        assert bev_ab[0, 0] == pytest.approx(bev_ba[0, 0], abs=1e-12)
+        assert iou_ab[0, 0] == pytest.approx(iou_ba[0, 0], abs=1e-12)
+        assert 0.0 <= iou_ab[0, 0] <= bev_ab[0, 0] + 1e-12 <= 1.0 + 2e-12

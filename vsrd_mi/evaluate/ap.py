@@ -18,7 +18,9 @@ Two precision curves are computed from the same devkit matching (:mod:`.matching
     41 counted ground-truth boxes the assignment is shifted by one sample, so even perfect
     detections score below 100 (e.g. 97.5 AP|R40 with exactly 40 ground-truth boxes).
 
-A precision of 0/0 (no counted detection above a threshold) is taken as 0. With no counted ground
+Recall is TP / (number of counted ground-truth boxes), the denominator the devkit's recall sampling
+uses (a counted box matched by an ignored detection is neither TP nor FN, so it only lowers the
+reachable recall). A precision of 0/0 (no counted detection above a threshold) is taken as 0. With no counted ground
 truth AP is undefined and reported as None.
 """
 

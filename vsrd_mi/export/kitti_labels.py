@@ -133,8 +133,8 @@ def write_labels(path: str | os.PathLike, labels: Iterable[KittiLabel],
     """Write a label file atomically.
 
     The lines go to a temporary file in the destination directory (created if missing), which is
-    flushed, fsync'ed and then renamed over ``path`` with :func:`os.replace`, so readers see either
-    the old file or the complete new one. An empty ``labels`` writes an empty file (no objects).
+    flushed, fsync'ed and then renamed over ``path`` with :func:`os.replace` (the directory is
+    fsync'ed afterwards), so readers see either the old file or the complete new one. An empty ``labels`` writes an empty file (no objects).
     """
     path = Path(path)
     text = "".join(format_label_line(lab, decimals) + "\n" for lab in labels)
@@ -151,6 +151,21 @@ def write_labels(path: str | os.PathLike, labels: Iterable[KittiLabel],
         if os.path.exists(tmp):
             os.unlink(tmp)
         raise
+    _fsync_directory(path.parent)
+
+
+def _fsync_directory(directory: Path) -> None:
+    """Persist a rename in ``directory`` (POSIX; a no-op where directories cannot be opened)."""
+    try:
+        fd = os.open(directory, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass  # some file systems do not support fsync on directories; the rename is still atomic
+    finally:
+        os.close(fd)
 
 
 def observation_angle(ry: float, x: float, z: float) -> float:
