@@ -39,7 +39,14 @@ class FrameMatchInput:
     scores: np.ndarray
 
     def __post_init__(self) -> None:
+        object.__setattr__(self, "gt_ignored", np.asarray(self.gt_ignored, dtype=bool).reshape(-1))
+        object.__setattr__(self, "det_ignored", np.asarray(self.det_ignored, dtype=bool).reshape(-1))
+        object.__setattr__(self, "scores", np.asarray(self.scores, dtype=np.float64).reshape(-1))
         g, d = len(self.gt_ignored), len(self.det_ignored)
+        overlap = np.asarray(self.overlap, dtype=np.float64)
+        if overlap.size == 0 and g * d == 0:
+            overlap = overlap.reshape(g, d)  # e.g. [] for a frame without ground truth
+        object.__setattr__(self, "overlap", overlap)
         if np.shape(self.overlap) != (g, d) or len(self.scores) != d:
             raise ValueError(f"inconsistent shapes: overlap {np.shape(self.overlap)}, "
                              f"{g} ground truth, {d} detections, {len(self.scores)} scores")
@@ -47,7 +54,7 @@ class FrameMatchInput:
     @property
     def n_counted_gt(self) -> int:
         """Number of ground-truth boxes that count (are not ignored)."""
-        return int(np.count_nonzero(~np.asarray(self.gt_ignored, dtype=bool)))
+        return int(np.count_nonzero(~self.gt_ignored))
 
 
 @dataclass(frozen=True)
@@ -61,9 +68,7 @@ class Counts:
 
 def match_true_positive_scores(frame: FrameMatchInput, min_overlap: float) -> list[float]:
     """Scores of the true positives of the devkit's first pass (no score threshold)."""
-    gt_ignored = np.asarray(frame.gt_ignored, dtype=bool)
-    det_ignored = np.asarray(frame.det_ignored, dtype=bool)
-    scores = np.asarray(frame.scores, dtype=np.float64)
+    gt_ignored, det_ignored, scores = frame.gt_ignored, frame.det_ignored, frame.scores
     assigned = np.zeros(len(scores), dtype=bool)
     tp_scores: list[float] = []
     for i in range(len(gt_ignored)):
@@ -85,17 +90,15 @@ def counts_at_thresholds(frame: FrameMatchInput, min_overlap: float,
     over the ground truth runs once, vectorised over the thresholds.
     """
     thresholds = np.asarray(thresholds, dtype=np.float64).reshape(-1)
-    gt_ignored = np.asarray(frame.gt_ignored, dtype=bool)
-    det_ignored = np.asarray(frame.det_ignored, dtype=bool)
-    active = np.asarray(frame.scores, dtype=np.float64)[None, :] >= thresholds[:, None]  # (T, D)
-    above = np.asarray(frame.overlap, dtype=np.float64) > min_overlap  # (G, D)
+    gt_ignored, det_ignored = frame.gt_ignored, frame.det_ignored
+    active = frame.scores[None, :] >= thresholds[:, None]  # (T, D)
+    above = frame.overlap > min_overlap  # (G, D)
     assigned = np.zeros_like(active)
     tp = np.zeros(len(thresholds), dtype=np.int64)
     fn = np.zeros(len(thresholds), dtype=np.int64)
     rows = np.arange(len(thresholds))
     if len(det_ignored) == 0:
-        fn += int(np.count_nonzero(~gt_ignored))
-        return np.stack([tp, tp, fn], axis=1)
+        return np.stack([tp, np.zeros_like(tp), fn + frame.n_counted_gt], axis=1)
     for i in range(len(gt_ignored)):
         if not above[i].any():  # nothing to match at any threshold
             fn += int(not gt_ignored[i])
@@ -129,7 +132,9 @@ def frame_threshold_events(frame: FrameMatchInput, min_overlap: float
     detection": (0, 0, number of counted ground truth)). For any threshold ``t`` the frame's counts
     are that base plus the sum of the deltas of the levels >= ``t``.
     """
-    levels = np.unique(np.asarray(frame.scores, dtype=np.float64))[::-1]
+    levels = np.unique(frame.scores)[::-1]
+    if len(levels) == 0:
+        return levels, np.zeros((0, 3), dtype=np.int64)
     counts = counts_at_thresholds(frame, min_overlap, levels)
     previous = np.concatenate([[[0, 0, frame.n_counted_gt]], counts[:-1]])
     return levels, counts - previous
