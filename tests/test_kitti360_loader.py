@@ -247,3 +247,33 @@ def test_car_masks_helper_matches_instance_values():
     m = paint({26005: (0, 0, 3, 3), 26010: (5, 5, 9, 9)})
     masks = car_masks(m)
     assert sorted(masks) == [26005, 26010] and masks[26005].sum() == 16
+
+
+def test_max_signed_distance_matches_per_instance_full_image_reference():
+    """The cropped / union computation equals the max over instances of full-image transforms."""
+    import cv2
+    from vsrd_mi.data.masks import max_signed_distance
+
+    def reference(masks):
+        best = np.full(masks.shape[1:], -np.inf)
+        for m in masks:
+            if m.any():
+                u = m.astype(np.uint8)
+                inside = cv2.distanceTransform(u, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+                outside = cv2.distanceTransform(1 - u, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+                best = np.maximum(best, np.where(m, inside - 0.5, -(outside - 0.5)))
+        return best
+
+    rng = np.random.default_rng(0)
+    for _ in range(100):
+        h, w = rng.integers(5, 40, 2)
+        inst = np.zeros((h, w), int)
+        for k in range(1, 4):  # touching / overlapping rectangles, later ones on top, plus holes
+            x0, y0 = rng.integers(0, w), rng.integers(0, h)
+            inst[y0:y0 + rng.integers(1, 20), x0:x0 + rng.integers(1, 20)] = k
+        inst[rng.random((h, w)) < 0.05] = 0
+        masks = np.stack([inst == k for k in range(1, 4)])
+        got, ref = max_signed_distance(masks), reference(masks)
+        assert np.array_equal(np.isinf(got), np.isinf(ref))
+        finite = np.isfinite(ref)
+        assert np.allclose(got[finite], ref[finite], atol=1e-5)

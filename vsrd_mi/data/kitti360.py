@@ -368,6 +368,10 @@ def boxes_in_camera(world_boxes: list[WorldBox], frame: int, cam0_to_world: np.n
     Static objects count when ``start_frame <= frame <= end_frame``; dynamic objects when they have
     an element with ``timestamp == frame``. Size ``(w, h, l)``; yaw from the length axis projected to
     the camera x-z plane; velocity in metres per frame index (dynamic objects only).
+
+    The centre is exact. The orientation follows the KITTI label convention (vertical box axis =
+    camera y), so the camera's pitch and roll relative to gravity (a few degrees on KITTI-360) are
+    dropped from the orientation, as in :meth:`Box3D.transformed`.
     """
     world_to_cam = np.linalg.inv(cam0_to_world)
     R = world_to_cam[:3, :3]

@@ -68,23 +68,54 @@ def valid_car_ids(instance_map: np.ndarray, min_area: int, min_box_side: float) 
     return frozenset(out)
 
 
-def signed_distance(mask: np.ndarray) -> np.ndarray:
-    """Euclidean distance in pixels from each pixel centre to the mask boundary, positive inside.
+def _distance_to_zero(m: np.ndarray) -> np.ndarray:
+    """Exact Euclidean distance from each non-zero pixel centre to the nearest zero pixel centre."""
+    return cv2.distanceTransform(m.astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
 
-    Computed as the exact Euclidean distance to the nearest pixel centre on the other side minus
-    half a pixel, so a pixel next to the boundary is at +-0.5; this is exact along rows and columns
-    and overshoots the distance to a mask corner by at most ``(sqrt(2) - 1) / 2 ~ 0.21`` px, far below
-    the 10 px scale of the weights. An empty mask is -inf everywhere, a full one +inf.
+
+def max_signed_distance(masks: np.ndarray) -> np.ndarray:
+    """Largest signed distance (px) over instances from each pixel to an instance mask boundary.
+
+    The signed distance of one mask is the exact Euclidean distance to the nearest pixel centre on
+    the other side minus half a pixel (positive inside), so a pixel next to the boundary is at
+    +-0.5; this is exact along rows and columns and overshoots the distance to a mask corner by at
+    most ``(sqrt(2) - 1) / 2 ~ 0.21`` px. The image border is not a boundary (masks truncated by
+    the image continue beyond it).
+
+    Outside every mask the maximum is minus the distance to the union of the masks (one distance
+    transform of the whole image); inside mask ``n`` it is that mask's own inside distance,
+    computed in its bounding box padded by one pixel (the nearest outside pixel always lies within
+    that padded box). Returns float32 (H, W); -inf everywhere when all masks are empty, +inf where
+    a mask covers the whole image.
     """
-    mask = np.asarray(mask, dtype=bool)
-    if not mask.any():
-        return np.full(mask.shape, -np.inf, dtype=np.float32)
-    if mask.all():
-        return np.full(mask.shape, np.inf, dtype=np.float32)
-    m = mask.astype(np.uint8)
-    inside = cv2.distanceTransform(m, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
-    outside = cv2.distanceTransform(1 - m, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
-    return np.where(mask, inside - 0.5, -(outside - 0.5)).astype(np.float32)
+    masks = np.asarray(masks, dtype=bool)
+    if masks.ndim != 3:
+        raise ValueError(f"masks must be (N, H, W), got shape {masks.shape}")
+    H, W = masks.shape[1:]
+    union = masks.any(axis=0)
+    if not union.any():
+        return np.full((H, W), -np.inf, dtype=np.float32)
+    if union.all():
+        out = np.full((H, W), -np.inf, dtype=np.float32)
+    else:
+        out = -(_distance_to_zero(~union) - 0.5)
+        out[union] = -np.inf
+    for m in masks:
+        box = tight_box(m)
+        if box is None:
+            continue
+        x0, y0 = max(int(box[0] + 0.5) - 1, 0), max(int(box[1] + 0.5) - 1, 0)
+        x1, y1 = min(int(box[2] - 0.5) + 2, W), min(int(box[3] - 0.5) + 2, H)
+        crop = m[y0:y1, x0:x1]
+        inside = np.full(crop.shape, np.inf, dtype=np.float32) if crop.all() else _distance_to_zero(crop) - 0.5
+        view = out[y0:y1, x0:x1]
+        view[crop] = np.maximum(view[crop], inside[crop])
+    return out.astype(np.float32)
+
+
+def signed_distance(mask: np.ndarray) -> np.ndarray:
+    """Signed distance (px) of one mask, positive inside (see :func:`max_signed_distance`)."""
+    return max_signed_distance(np.asarray(mask, dtype=bool)[None])
 
 
 def soft_weight(masks: np.ndarray, scale: float = SOFT_WEIGHT_SCALE_PX) -> np.ndarray:
@@ -92,14 +123,9 @@ def soft_weight(masks: np.ndarray, scale: float = SOFT_WEIGHT_SCALE_PX) -> np.nd
 
     ``masks`` is (N, H, W) bool for the N target instances. Instances are combined by the maximum
     of their per-instance weights, which (sigmoid being monotone) is the sigmoid of the largest
-    signed distance: a pixel is weighted by its closest / deepest instance. A frame where no
-    instance is visible gets weight 0 everywhere. Returns float32 (H, W).
+    signed distance (:func:`max_signed_distance`): a pixel is weighted by its closest / deepest
+    instance. A frame where no instance is visible gets weight 0 everywhere. Returns float32 (H, W).
     """
-    masks = np.asarray(masks, dtype=bool)
-    if masks.ndim != 3:
-        raise ValueError(f"masks must be (N, H, W), got shape {masks.shape}")
-    best = np.full(masks.shape[1:], -np.inf, dtype=np.float32)
-    for m in masks:
-        best = np.maximum(best, signed_distance(m))
+    best = max_signed_distance(masks)
     with np.errstate(over="ignore"):
         return (1.0 / (1.0 + np.exp(-best / scale))).astype(np.float32)
