@@ -416,7 +416,6 @@ def _write_predictions(label_dir: Path, frame: int, boxes: list[Box3D], scores) 
 
 @pytest.fixture()
 def dataset(tmp_path):
-    pytest.importorskip("vsrd_mi.data.kitti360")
     root = tmp_path / "kitti360"
     _write_dataset(root)
     return root
