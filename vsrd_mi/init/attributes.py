@@ -129,15 +129,13 @@ def robust_weighted_mean(estimates: np.ndarray, weights: np.ndarray, mad_factor:
 
 
 def velocity_pairs(offsets: list[int], cfg: VelocityConfig) -> list[tuple[int, int]]:
-    """Frame-offset pairs ``(a, b)``, ``a < b``, ``b - a <= cfg.max_gap``, per ``cfg.pair_mode``."""
+    """Frame-offset pairs ``(a, b)``: each offset with its next ``cfg.pair_neighbours`` offsets
+    in time, keeping ``0 < b - a <= cfg.max_gap``."""
+    if cfg.pair_neighbours < 1:
+        raise ValueError(f"pair_neighbours must be >= 1, got {cfg.pair_neighbours}")
     offsets = sorted(offsets)
-    if cfg.pair_mode == "consecutive":
-        cand = list(zip(offsets[:-1], offsets[1:]))
-    elif cfg.pair_mode == "all":
-        cand = [(a, b) for i, a in enumerate(offsets) for b in offsets[i + 1:]]
-    else:
-        raise ValueError(f"pair_mode must be 'all' or 'consecutive', got {cfg.pair_mode!r}")
-    return [(a, b) for a, b in cand if 0 < b - a <= cfg.max_gap]
+    return [(a, b) for i, a in enumerate(offsets)
+            for b in offsets[i + 1:i + 1 + cfg.pair_neighbours] if 0 < b - a <= cfg.max_gap]
 
 
 def estimate_velocity(clouds: dict[int, np.ndarray], cfg: VelocityConfig) -> tuple[np.ndarray, int]:
@@ -228,34 +226,69 @@ def _axes(yaw: np.ndarray | float) -> tuple[np.ndarray, np.ndarray]:
     return np.stack([s, c], -1), np.stack([c, -s], -1)
 
 
+def _edge_extents(xz: np.ndarray, psi: float, percentile: float) -> list[tuple[float, float]]:
+    """Robust ``(lo, hi)`` of the x-z points along the length and width axes of yaw ``psi``."""
+    return [tuple(np.percentile(xz @ ax, [percentile, 100.0 - percentile])) for ax in _axes(psi)]
+
+
+def _refine_rectangle_angle(xz: np.ndarray, psi: float, cfg: OrientationConfig) -> float:
+    """Least-squares refinement of a rectangle orientation ``psi``.
+
+    Each point within ``cfg.refine_distance`` of an edge of the current rectangle is assigned to
+    its nearest edge; the orientation minimising the squared distances of the points to their
+    (mean-centred) edge lines is the eigenvector of the smallest eigenvalue of
+    ``C_long + J^T C_lat J`` (scatter of the points on the faces across the length axis and on
+    the faces along it; J rotates by 90 degrees). Repeated ``cfg.refine_iterations`` times.
+    """
+    J = np.array([[0.0, 1.0], [-1.0, 0.0]])           # length axis -> width axis
+    for _ in range(cfg.refine_iterations):
+        dists, groups = [], []
+        for k, ax in enumerate(_axes(psi)):
+            proj = xz @ ax
+            lo, hi = np.percentile(proj, [cfg.edge_percentile, 100.0 - cfg.edge_percentile])
+            dists += [np.abs(proj - lo), np.abs(proj - hi)]
+        dists = np.stack(dists)                          # (4, N): A-lo, A-hi, B-lo, B-hi
+        nearest = dists.argmin(0)
+        near = dists.min(0) <= cfg.refine_distance
+        scatter = [np.zeros((2, 2)), np.zeros((2, 2))]
+        for e in range(4):
+            pts = xz[near & (nearest == e)]
+            if len(pts) >= 2:
+                c = pts - pts.mean(0)
+                scatter[e // 2] += c.T @ c
+        m = scatter[0] + J.T @ scatter[1] @ J
+        if not np.any(m):
+            break
+        a = np.linalg.eigh(m)[1][:, 0]                   # new length axis (x, z)
+        new = np.arctan2(a[0], a[1])
+        psi = float(psi + wrap_angle(2 * (new - psi)) / 2)   # same axis, modulo pi
+    return psi
+
+
 def dominant_yaw(points: np.ndarray, cfg: OrientationConfig) -> float:
     """Yaw of a parked car from the dominant horizontal directions of its cloud.
 
     A rectangle orientation in [0, 90) is found by maximising the closeness criterion of
     Zhang et al. (2017, "Efficient L-shape fitting for vehicle detection using laser scanners")
-    on the x-z points; which of the two rectangle axes is the car's length is decided by the
-    cloud's extent along them (an extent beyond ``cfg.length_evidence`` can only be a length),
-    else by the road prior (the axis closer to the optimisation frame's forward direction).
+    on the x-z points and refined by least squares (:func:`_refine_rectangle_angle`); which of the
+    two rectangle axes is the car's length is decided by the cloud's extent along them (an extent
+    beyond ``cfg.length_evidence`` can only be a length), else by the road prior (the axis
+    closer to the optimisation frame's forward direction).
     The result is in [-pi/2, pi/2) (a box is symmetric under yaw + pi).
     """
     xz = points[:, [0, 2]] - points[:, [0, 2]].mean(axis=0)
     psi = np.deg2rad(np.arange(0.0, 90.0, cfg.search_step_deg))
-    length_ax, width_ax = _axes(psi)                      # (A, 2) each
     best_score, best = -np.inf, 0.0
     for k in range(len(psi)):
         d = np.inf
-        for ax in (length_ax[k], width_ax[k]):
+        for ax, (lo, hi) in zip(_axes(psi[k]), _edge_extents(xz, psi[k], cfg.edge_percentile)):
             proj = xz @ ax
-            lo, hi = np.percentile(proj, [cfg.edge_percentile, 100.0 - cfg.edge_percentile])
             d = np.minimum(d, np.minimum(np.abs(proj - lo), np.abs(hi - proj)))
         score = float(np.sum(1.0 / np.maximum(d, cfg.closeness_floor)))
         if score > best_score:
             best_score, best = score, float(psi[k])
-    extents = []
-    for ax in _axes(best):
-        proj = xz @ ax
-        lo, hi = np.percentile(proj, [cfg.edge_percentile, 100.0 - cfg.edge_percentile])
-        extents.append(hi - lo)
+    best = _refine_rectangle_angle(xz, best, cfg)
+    extents = [hi - lo for lo, hi in _edge_extents(xz, best, cfg.edge_percentile)]
     if max(extents) > cfg.length_evidence:
         yaw = best if extents[0] >= extents[1] else best + np.pi / 2
     else:

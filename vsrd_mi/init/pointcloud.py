@@ -4,7 +4,8 @@
 2. keep the pixels whose left-right photometric warp error is within the mask's 40th percentile;
 3. back-project them with K and the frame pose into the optimisation frame;
 4. density filter (neighbours within 0.5 m; drop the lowest 1 %), then keep the main cluster of a
-   single-linkage (DBSCAN with ``min_samples = 1``) clustering with linkage distance 0.8 m.
+   single-linkage (DBSCAN with ``min_samples = 1``) clustering with linkage distance 0.8 m
+   (:func:`cluster_labels`).
 """
 
 from __future__ import annotations
@@ -102,19 +103,26 @@ def density_filter(points: np.ndarray, radius: float, drop_fraction: float) -> n
     return points[keep]
 
 
-def main_cluster(points: np.ndarray, eps: float) -> np.ndarray:
-    """The largest connected component of the graph linking points closer than ``eps``.
+def cluster_labels(points: np.ndarray, eps: float) -> np.ndarray:
+    """Labels of the connected components of the graph linking points closer than ``eps``.
 
-    This is DBSCAN with ``min_samples = 1`` (single linkage), computed with ``cKDTree`` and
-    ``scipy.sparse.csgraph.connected_components``. Ties go to the component found first.
+    This is single-linkage clustering (DBSCAN with ``min_samples = 1``), computed exactly with
+    ``cKDTree.query_pairs`` and ``scipy.sparse.csgraph.connected_components``. The number of
+    pairs grows with the square of the cloud size: callers bound it
+    (:attr:`PointCloudConfig.max_points`).
     """
-    if len(points) <= 1:
-        return points
-    pairs = cKDTree(points).query_pairs(r=eps, output_type="ndarray")
     n = len(points)
+    pairs = cKDTree(points).query_pairs(r=eps, output_type="ndarray").reshape(-1, 2)
     graph = coo_matrix((np.ones(len(pairs), dtype=np.int8), (pairs[:, 0], pairs[:, 1])),
                        shape=(n, n))
-    _, labels = connected_components(graph, directed=False)
+    return connected_components(graph, directed=False)[1]
+
+
+def main_cluster(points: np.ndarray, eps: float) -> np.ndarray:
+    """The points of the largest :func:`cluster_labels` component (ties: the first found)."""
+    if len(points) <= 1:
+        return points
+    labels = cluster_labels(points, eps)
     return points[labels == np.bincount(labels).argmax()]
 
 

@@ -1,0 +1,329 @@
+"""Attribute initialisation: hand-made clouds (ICP, velocity, dynamic flag, yaw, location sign,
+filters, footprint) and an end-to-end run on a small analytically ray-cast stereo sequence."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+
+from vsrd_mi.geometry.boxes import Box3D, wrap_angle
+from vsrd_mi.init import InitConfig, StereoFrame, initialise, save_point_clouds_ply
+from vsrd_mi.init.attributes import (dominant_yaw, estimate_velocity, fit_footprint,
+                                     initialise_instance, is_dynamic, reference_offset,
+                                     to_target_time)
+from vsrd_mi.init.config import FootprintConfig, OrientationConfig, PointCloudConfig, VelocityConfig
+from vsrd_mi.init.icp import icp_translation, register_translation
+from vsrd_mi.init.pointcloud import density_filter, erode_mask, filter_cloud, main_cluster
+
+CAR = np.array([1.8, 1.5, 4.3])
+
+
+def box_surface(box: Box3D, n: int, rng: np.random.Generator, noise: float = 0.0,
+                faces: tuple[int, ...] | None = None) -> np.ndarray:
+    """``n`` points on the faces of ``box`` (face k in 0..5 = -x, +x, -y, +y, -z, +z local)."""
+    faces = tuple(range(6)) if faces is None else faces
+    half = box.size / 2
+    f = rng.choice(faces, n)
+    local = rng.uniform(-1, 1, (n, 3)) * half
+    axis, sign = f // 2, np.where(f % 2, 1.0, -1.0)
+    local[np.arange(n), axis] = sign * half[axis]
+    pts = box.centre + local @ box.rotation.T
+    return pts + rng.normal(0, noise, pts.shape)
+
+
+def visible_faces(box: Box3D, camera: np.ndarray) -> tuple[int, ...]:
+    """Faces of ``box`` whose outside half-space contains ``camera``."""
+    local = box.rotation.T @ (camera - box.centre)
+    half = box.size / 2
+    return tuple(2 * k + (local[k] > 0) for k in range(3) if abs(local[k]) > half[k])
+
+
+# ------------------------------------------------------------------------------------- ICP
+
+def test_icp_recovers_known_translation():
+    rng = np.random.default_rng(1)
+    box = Box3D([2.0, 0.8, 15.0], CAR, 0.4)
+    t_true = np.array([0.7, 0.0, -1.3])
+    a = box_surface(box, 1500, rng, noise=0.02)
+    b = box_surface(Box3D(box.centre + t_true, CAR, 0.4), 1500, rng, noise=0.02)
+    r = icp_translation(a, b)
+    assert r.converged
+    np.testing.assert_allclose(r.translation, t_true, atol=0.03)
+    r2 = register_translation(a, b, max_source_points=800)
+    np.testing.assert_allclose(r2.translation, t_true, atol=0.03)
+
+
+def test_icp_recovers_large_motion_of_partial_views():
+    """Same visible faces (a car driving ahead) moved by 4 m: zero-motion runs fail clearly."""
+    rng = np.random.default_rng(2)
+    box = Box3D([0.3, 0.8, 12.0], CAR, 0.05)
+    faces = visible_faces(box, np.zeros(3))
+    t_true = np.array([0.2, 0.0, 4.0])
+    a = box_surface(box, 1200, rng, 0.03, faces)
+    b = box_surface(Box3D(box.centre + t_true, CAR, 0.05), 1200, rng, 0.03, faces)
+    np.testing.assert_allclose(register_translation(a, b).translation, t_true, atol=0.1)
+
+
+def test_register_prefers_no_motion_when_occlusion_moves_the_centroid():
+    """A static rear face, its right half hidden in the second view: the centroid moves by
+    0.45 m but a zero translation explains the data as well, and is chosen."""
+    rng = np.random.default_rng(3)
+    n = 1500
+    a = np.stack([rng.uniform(-0.9, 0.9, n), rng.uniform(0, 1.4, n), 12 + rng.normal(0, .03, n)], 1)
+    b = a[a[:, 0] < 0.0] + rng.normal(0, 0.01, (int((a[:, 0] < 0).sum()), 3))
+    assert abs((b.mean(0) - a.mean(0))[0]) > 0.4
+    t = register_translation(a, b).translation
+    assert np.linalg.norm(t) < 0.05
+
+
+# ------------------------------------------------------------------------------ velocity
+
+def _moving_clouds(box: Box3D, offsets, rng, cam_step=np.array([0, 0, 0.8]), noise=0.03, n=800):
+    """Clouds of the faces visible from a camera moving by ``cam_step`` per frame."""
+    clouds, cams = {}, {}
+    for o in offsets:
+        b = box.at_offset(o)
+        cams[o] = cam_step * o
+        clouds[o] = box_surface(b, n, rng, noise, visible_faces(b, cams[o]))
+    return clouds, cams
+
+
+def test_velocity_and_dynamic_flag():
+    rng = np.random.default_rng(4)
+    cfg = VelocityConfig()
+    v_true = np.array([0.1, 0.0, 0.9])     # 9 m/s
+    moving = Box3D([-0.5, 0.8, 10.0], CAR, np.arctan2(0.1, 0.9), v_true, True)
+    clouds, _ = _moving_clouds(moving, range(-6, 7, 3), rng)
+    v, n_pairs = estimate_velocity(clouds, cfg)
+    assert n_pairs >= 4
+    np.testing.assert_allclose(v, v_true, atol=0.05)
+    assert is_dynamic(v, cfg)
+    parked = Box3D([-3.5, 0.8, 18.0], CAR, 0.0)
+    clouds, _ = _moving_clouds(parked, range(-6, 7, 3), rng)
+    v, _ = estimate_velocity(clouds, cfg)
+    assert not is_dynamic(v, cfg)
+    assert np.linalg.norm(v) < 0.05
+
+
+def test_dynamic_threshold_in_metres_per_second():
+    cfg = VelocityConfig(dynamic_speed_threshold=1.5, frame_rate_hz=10.0)
+    assert not is_dynamic(np.array([0.0, 0.0, 0.14]), cfg)      # 1.4 m/s
+    assert is_dynamic(np.array([0.1, 0.0, 0.12]), cfg)         # 1.56 m/s
+    assert is_dynamic(np.array([0.0, 0.0, 0.16]), VelocityConfig(frame_rate_hz=10.0))
+    assert not is_dynamic(np.array([0.0, 0.0, 0.16]), VelocityConfig(frame_rate_hz=5.0))
+
+
+def test_velocity_skips_small_clouds_and_large_gaps():
+    rng = np.random.default_rng(5)
+    box = Box3D([0.0, 0.8, 10.0], CAR, 0.0, [0, 0, 0.5], True)
+    clouds, _ = _moving_clouds(box, [0, 20], rng)           # gap 20 > 15
+    assert estimate_velocity(clouds, VelocityConfig())[1] == 0
+    clouds, _ = _moving_clouds(box, [0, 3], rng, n=90)      # <= 100 points
+    assert estimate_velocity(clouds, VelocityConfig())[1] == 0
+    np.testing.assert_array_equal(estimate_velocity(clouds, VelocityConfig())[0], 0.0)
+
+
+# ---------------------------------------------------------------------------- orientation
+
+@pytest.mark.parametrize("yaw_deg", [0.0, 17.0, 45.0, 70.0, 90.0, -33.0])
+def test_yaw_from_rectangle_of_points(yaw_deg):
+    """Perimeter points of a 4.3 x 1.8 footprint: the length axis direction is recovered."""
+    rng = np.random.default_rng(6)
+    box = Box3D([1.0, 0.8, 14.0], CAR, np.radians(yaw_deg))
+    pts = box_surface(box, 2000, rng, 0.02, faces=(0, 1, 4, 5))
+    err = wrap_angle(2 * (dominant_yaw(pts, OrientationConfig()) - box.yaw)) / 2   # mod pi
+    assert abs(np.degrees(err)) < 2.0
+
+
+@pytest.mark.parametrize("yaw_deg", [5.0, -20.0, 35.0])
+def test_yaw_from_l_shape_and_single_face(yaw_deg):
+    rng = np.random.default_rng(7)
+    box = Box3D([-3.0, 0.8, 12.0], CAR, np.radians(yaw_deg))
+    cfg = OrientationConfig()
+    faces = tuple(f for f in visible_faces(box, np.zeros(3)) if f not in (2, 3))
+    l_shape = box_surface(box, 1500, rng, 0.03, faces)
+    err = wrap_angle(2 * (dominant_yaw(l_shape, cfg) - box.yaw)) / 2
+    assert abs(np.degrees(err)) < 3.0
+    rear = box_surface(box, 800, rng, 0.03, faces=(4,))    # only the short face: road prior
+    err = wrap_angle(2 * (dominant_yaw(rear, cfg) - box.yaw)) / 2
+    assert abs(np.degrees(err)) < 3.0
+
+
+# ------------------------------------------------------------------------------- location
+
+def test_location_sign_convention():
+    """A cloud seen at offset dt of a car with velocity v is moved by -v*dt to the target time."""
+    v = np.array([0.3, 0.0, 1.2])
+    centre = np.array([1.0, 0.8, 10.0])
+    seen = centre + v * 3 + np.array([[0.1, 0, 0], [-0.1, 0, 0]])
+    np.testing.assert_allclose(to_target_time(seen, 3, v).mean(0), centre)
+    np.testing.assert_allclose(to_target_time(seen, -2, v).mean(0), centre + v * 5)
+
+
+def test_reference_offset_rule():
+    c = {-3: np.zeros((300, 3)), 0: np.zeros((50, 3)), 2: np.zeros((130, 3)), -2: np.zeros((130, 3))}
+    assert reference_offset(c, 120) == -2          # nearest big enough; earlier on ties
+    assert reference_offset({0: np.zeros((120, 3)), 1: np.zeros((500, 3))}, 120) == 0
+    assert reference_offset({4: np.zeros((10, 3)), -1: np.zeros((30, 3))}, 120) == -1
+
+
+def test_location_from_nearest_frame_moved_back_by_velocity():
+    """Target frame has too few points: the nearest frame's cloud, moved by -v*dt, locates it."""
+    rng = np.random.default_rng(8)
+    v_true = np.array([0.0, 0.0, 1.0])
+    box = Box3D([0.0, 0.8, 9.0], CAR, 0.0, v_true, True)
+    clouds = {o: box_surface(box.at_offset(o), 600, rng, 0.01) for o in (-4, 3, 6)}
+    clouds[0] = box_surface(box, 40, rng, 0.01)
+    cams = {o: np.array([0.0, 0.0, 0.8 * o]) for o in clouds}
+    init = initialise_instance(7, clouds, cams, InitConfig())
+    assert init.dynamic and init.reference_offset == 3
+    np.testing.assert_allclose(init.velocity, v_true, atol=0.05)
+    np.testing.assert_allclose(init.cloud_mean, box.centre, atol=0.1)
+    np.testing.assert_allclose(init.centre, box.centre, atol=0.15)
+
+
+def test_footprint_corrects_visible_surface_bias():
+    """Rear + side faces of a car seen from the origin: the plain mean is pulled ~1.5 m towards
+    the camera, the footprint fit recovers the centre."""
+    rng = np.random.default_rng(9)
+    cfg = FootprintConfig()
+    for centre, yaw in (([-3.0, 0.8, 12.0], 0.1), ([4.0, 0.8, 20.0], -0.3), ([0.2, 0.8, 8.0], 0.0)):
+        box = Box3D(centre, CAR, yaw)
+        pts = box_surface(box, 2000, rng, 0.05, visible_faces(box, np.zeros(3)))
+        pts = pts[(pts[:, 1] > 0.2) & (pts[:, 1] < 1.4)]    # erosion keeps the middle rows
+        c, size = fit_footprint(pts, yaw, np.zeros((1, 3)), np.ones(1), cfg)
+        assert np.linalg.norm(pts.mean(0) - box.centre) > 1.0
+        assert np.linalg.norm(c - box.centre) < 0.25
+        assert np.all(size >= np.asarray(cfg.typical_size) - 1e-9)
+
+
+# --------------------------------------------------------------------------------- filters
+
+def test_density_filter_and_main_cluster():
+    rng = np.random.default_rng(10)
+    main = rng.normal(0, 0.4, (600, 3)) + [0, 1, 10]
+    other = rng.normal(0, 0.2, (80, 3)) + [4, 1, 10]       # another object 4 m away
+    strays = np.array([[0, 1, 15.0], [-5, 1, 10.0], [0, -4, 10.0]])
+    pts = np.concatenate([main, other, strays])
+    dens = density_filter(pts, 0.5, 0.01)
+    assert len(dens) == len(pts) - int(0.01 * len(pts))
+    assert not any((s == dens).all(1).any() for s in strays)     # isolated points go first
+    kept = main_cluster(dens, 0.8)
+    in_main = np.abs(dens[:, 0]) < 3
+    assert len(kept) == in_main.sum() >= 600 - 6 and np.all(np.abs(kept[:, 0]) < 3)
+    np.testing.assert_array_equal(filter_cloud(pts, PointCloudConfig()), kept)
+
+
+def test_erosion_kernel():
+    mask = np.zeros((60, 80), bool)
+    mask[10:50, 10:70] = True                  # area 2400 -> kernel int(49 * 0.25) = 12
+    er = erode_mask(mask, 0.25)
+    rows, cols = np.nonzero(er)                # anchor at the kernel centre (6): 6 up, 5 down
+    assert (rows.min(), rows.max(), cols.min(), cols.max()) == (16, 44, 16, 64)
+    assert er.sum() == (40 - 11) * (60 - 11)
+    edge = np.zeros((60, 80), bool)
+    edge[:, :30] = True                        # touches the image border: not eroded there
+    assert erode_mask(edge, 0.25)[:, 0].all()
+
+
+# ------------------------------------------------------------------------------ end to end
+
+def _texture(p: np.ndarray, seed: int) -> np.ndarray:
+    """Smooth random RGB texture (sum of 16 plane waves, wavelengths 0.15-1.5 m)."""
+    rng = np.random.default_rng(seed)
+    dirs = rng.normal(size=(16, 3))
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    k = dirs * (2 * np.pi / np.exp(rng.uniform(np.log(0.15), np.log(1.5), 16)))[:, None]
+    val = np.sin(p @ k.T + rng.uniform(0, 2 * np.pi, 16)).sum(-1) / np.sqrt(8)
+    return np.clip(128 + 50 * val[:, None] * rng.uniform(0.5, 1.0, 3), 0, 255)
+
+
+def render_stereo(K, size, cam_to_world, boxes, ground_y, baseline):
+    """Analytic ray casting of textured boxes on a textured ground plane (y = ground_y).
+
+    Returns left RGB, right RGB, instance masks of the left image, left depth."""
+    w, h = size
+    v, u = np.mgrid[0:h, 0:w].astype(float)
+    d_cam = np.stack([u, v, np.ones_like(u)], -1).reshape(-1, 3) @ np.linalg.inv(K).T
+    images = []
+    for cam_x in (0.0, baseline):
+        o = cam_to_world[:3, :3] @ np.array([cam_x, 0, 0]) + cam_to_world[:3, 3]
+        d = d_cam @ cam_to_world[:3, :3].T
+        t_best = np.full(len(d), np.inf)
+        ids = np.full(len(d), -1)
+        local = {}
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = np.where(d[:, 1] > 1e-9, (ground_y - o[1]) / d[:, 1], np.inf)
+            hit = t < t_best
+            t_best[hit], ids[hit] = t[hit], 0
+            local[0] = o + np.where(np.isfinite(t), t, 0)[:, None] * d
+            for box, iid in boxes:
+                pl, dl = box.rotation.T @ (o - box.centre), d @ box.rotation
+                t1, t2 = (-box.size / 2 - pl) / dl, (box.size / 2 - pl) / dl
+                t_in, t_out = np.minimum(t1, t2).max(-1), np.maximum(t1, t2).min(-1)
+                t = np.where((t_out >= t_in) & (t_in > 0), t_in, np.inf)
+                hit = t < t_best
+                t_best[hit], ids[hit] = t[hit], iid
+                local[iid] = pl + np.where(np.isfinite(t), t, 0)[:, None] * dl
+        rgb = np.full((len(d), 3), 200.0)
+        for iid, p in local.items():
+            m = ids == iid
+            rgb[m] = _texture(p[m], 100 + iid)
+        images.append((rgb.reshape(h, w, 3).astype(np.uint8), ids.reshape(h, w),
+                       t_best.reshape(h, w)))
+    (left, ids, depth), (right, _, _) = images
+    masks = {iid: ids == iid for _, iid in boxes if (ids == iid).sum() > 0}
+    return left, right, masks, np.where(np.isfinite(depth), depth, np.nan)
+
+
+@pytest.fixture(scope="module")
+def small_sequence():
+    """7 frames (offsets -6..6 step 2), ego moving 0.8 m/frame; two parked cars, one moving."""
+    W, H, f, B, ground = 512, 192, 360.0, 0.54, 1.55
+    K = np.array([[f, 0, W / 2], [0, f, 70.0], [0, 0, 1]])
+    y = ground - CAR[1] / 2
+    v = np.array([0.15, 0.0, 1.0])
+    boxes = [(Box3D([-3.5, y, 14.0], CAR, 0.0), 1), (Box3D([3.6, y, 22.0], CAR, 0.3), 2),
+             (Box3D([-0.2, y, 10.0], CAR, np.arctan2(v[0], v[2]), v, True), 3)]
+    frames, depths = [], []
+    for dt in range(-6, 7, 2):
+        T = np.eye(4)
+        T[2, 3] = 0.8 * dt
+        left, right, masks, depth = render_stereo(K, (W, H), T,
+                                                  [(b.at_offset(dt), i) for b, i in boxes], ground, B)
+        frames.append(StereoFrame(dt, left, right, masks, K, B, T))
+        depths.append(depth)
+    return frames, {i: b for b, i in boxes}, depths
+
+
+def test_initialise_end_to_end_small_sequence(small_sequence, tmp_path):
+    frames, truth, _ = small_sequence
+    inits = initialise(frames, InitConfig())
+    assert set(inits) == set(truth)
+    for iid, box in truth.items():
+        got = inits[iid]
+        assert got.dynamic == box.dynamic, iid
+        assert np.linalg.norm(got.centre - box.centre) < 0.5, (iid, got.centre, box.centre)
+        assert np.linalg.norm(got.cloud_mean - box.centre) > np.linalg.norm(got.centre - box.centre)
+    moving = inits[3]
+    heading_err = np.degrees(abs(wrap_angle(moving.yaw - truth[3].yaw)))
+    assert heading_err < 5.0
+    assert abs(np.linalg.norm(moving.velocity) - np.linalg.norm(truth[3].velocity)) * 10 < 0.5
+    n = save_point_clouds_ply(tmp_path / "clouds.ply", inits)
+    loaded = trimesh.load(tmp_path / "clouds.ply")
+    assert len(loaded.vertices) == n == sum(len(c) for i in inits.values() for c in i.clouds.values())
+    assert initialise(frames, InitConfig(depth_mode="none")) == {}
+
+
+def test_initialise_with_precomputed_depth(small_sequence):
+    """Depth maps given with the frames (right image absent): no stereo matching needed."""
+    frames, truth, depths = small_sequence
+    depth_frames = []
+    for fr, depth in zip(frames, depths):
+        depth_frames.append(StereoFrame(fr.frame_offset, fr.left, None, fr.masks, fr.K,
+                                        fr.baseline, fr.cam_to_opt, depth=depth))
+    inits = initialise(depth_frames, InitConfig())
+    for iid, box in truth.items():
+        assert inits[iid].dynamic == box.dynamic
+        assert np.linalg.norm(inits[iid].centre - box.centre) < 0.3
