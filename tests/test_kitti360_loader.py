@@ -241,6 +241,10 @@ def test_boxes_in_camera_velocity_one_sided():
     assert np.allclose(first.velocity, [0, 0, 1.5]) and np.allclose(last.velocity, [0, 0, 1.5])
     (alone,) = boxes_in_camera([a], 0, camera_pose(0))
     assert np.allclose(alone.velocity, 0)
+    # a dynamic truck (KITTI id 14) with the same instanceId is another track
+    truck = kw.world_box(1, 14, (50, 0, 1.5), (8, 2.5, 3), 0.0, 0, 9, timestamp=1)
+    (first,) = boxes_in_camera([a, b, truck], 0, camera_pose(0))
+    assert np.allclose(first.velocity, [0, 0, 1.5])
 
 
 def test_car_masks_helper_matches_instance_values():

@@ -375,10 +375,10 @@ def boxes_in_camera(world_boxes: list[WorldBox], frame: int, cam0_to_world: np.n
     """
     world_to_cam = np.linalg.inv(cam0_to_world)
     R = world_to_cam[:3, :3]
-    tracks: dict[int, dict[int, WorldBox]] = {}
+    tracks: dict[tuple[int, int], dict[int, WorldBox]] = {}  # (class, instance) -> frame -> element
     for b in world_boxes:
         if b.dynamic:
-            tracks.setdefault(b.instance_id, {})[b.timestamp] = b
+            tracks.setdefault((b.kitti_id, b.instance_id), {})[b.timestamp] = b
     out = []
     for b in world_boxes:
         if b.kitti_id != CAR_KITTI_ID:
@@ -386,7 +386,7 @@ def boxes_in_camera(world_boxes: list[WorldBox], frame: int, cam0_to_world: np.n
         if b.dynamic:
             if b.timestamp != frame:
                 continue
-            velocity = R @ _world_velocity(tracks[b.instance_id], frame)
+            velocity = R @ _world_velocity(tracks[(b.kitti_id, b.instance_id)], frame)
         else:
             if not b.start_frame <= frame <= b.end_frame:
                 continue

@@ -7,7 +7,7 @@ frame's z axis, i.e. yaw 0), at rest.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -32,7 +32,7 @@ class DefaultInitConfig:
     #: Initial yaw (radians) in the optimisation frame: 0 = length axis along z, along the road.
     yaw: float = 0.0
     #: Initial velocity (m per frame index); instances start static.
-    velocity: tuple[float, float, float] = field(default=(0.0, 0.0, 0.0))
+    velocity: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
 
 def default_initial_boxes(obs: Observations, cfg: DefaultInitConfig | None = None) -> list[Box3D]:
