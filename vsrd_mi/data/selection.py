@@ -96,14 +96,15 @@ def candidate_sources(frame: int, frames: list[int], ids: IdLookup, cfg: Selecti
     out = []
     for step in (1, -1):
         i = pos + step
-        while 0 <= i < len(frames):
+        # frames beyond the offset cap are never kept, so the walk stops there (same result)
+        while 0 <= i < len(frames) and cfg.min_offset <= frames[i] - frame <= cfg.max_offset:
             f_ids = ids(frames[i])
             if f_ids is not None:
                 if len(target_ids & f_ids) < need:
                     break
                 out.append(frames[i])
             i += step
-    return sorted(f for f in out if cfg.min_offset <= f - frame <= cfg.max_offset)
+    return sorted(out)
 
 
 def pick_sources(frame: int, candidates: list[int], cfg: SelectionConfig) -> tuple[tuple[int, ...], str | None] | None:
