@@ -173,14 +173,25 @@ def test_location_from_nearest_frame_moved_back_by_velocity():
     rng = np.random.default_rng(8)
     v_true = np.array([0.0, 0.0, 1.0])
     box = Box3D([0.0, 0.8, 9.0], CAR, 0.0, v_true, True)
+    cams = {o: np.array([0.0, 0.0, 0.8 * o]) for o in (-4, 0, 3, 6)}
+    # whole surfaces: their mean is the box centre, so the plain location is checked exactly
     clouds = {o: box_surface(box.at_offset(o), 600, rng, 0.01) for o in (-4, 3, 6)}
     clouds[0] = box_surface(box, 40, rng, 0.01)
-    cams = {o: np.array([0.0, 0.0, 0.8 * o]) for o in clouds}
-    init = initialise_instance(7, clouds, cams, InitConfig())
+    init = initialise_instance(7, clouds, cams, InitConfig(footprint=FootprintConfig(enabled=False)))
     assert init.dynamic and init.reference_offset == 3
     np.testing.assert_allclose(init.velocity, v_true, atol=0.05)
     np.testing.assert_allclose(init.cloud_mean, box.centre, atol=0.1)
-    np.testing.assert_allclose(init.centre, box.centre, atol=0.15)
+    np.testing.assert_array_equal(init.centre, init.cloud_mean)
+    assert init.size is None
+    wrong_sign = clouds[3].mean(0) + v_true * 3          # the reference code's sign error
+    assert np.linalg.norm(wrong_sign - box.centre) > 5.0
+    # visible faces only (what stereo sees): the footprint fit recovers the centre
+    clouds = {o: box_surface(box.at_offset(o), 800, rng, 0.03,
+                             visible_faces(box.at_offset(o), cams[o])) for o in (-4, 3, 6)}
+    clouds[0] = clouds[3][:40] - v_true * 3
+    init = initialise_instance(7, clouds, cams, InitConfig())
+    assert init.dynamic and init.reference_offset == 3
+    np.testing.assert_allclose(init.centre, box.centre, atol=0.2)
 
 
 def test_footprint_corrects_visible_surface_bias():
@@ -192,7 +203,7 @@ def test_footprint_corrects_visible_surface_bias():
         box = Box3D(centre, CAR, yaw)
         pts = box_surface(box, 2000, rng, 0.05, visible_faces(box, np.zeros(3)))
         pts = pts[(pts[:, 1] > 0.2) & (pts[:, 1] < 1.4)]    # erosion keeps the middle rows
-        c, size = fit_footprint(pts, yaw, np.zeros((1, 3)), np.ones(1), cfg)
+        c, size = fit_footprint(pts, yaw, np.zeros_like(pts), cfg)
         assert np.linalg.norm(pts.mean(0) - box.centre) > 1.0
         assert np.linalg.norm(c - box.centre) < 0.25
         assert np.all(size >= np.asarray(cfg.typical_size) - 1e-9)

@@ -203,17 +203,20 @@ def reference_offset(clouds: dict[int, np.ndarray], min_points: int) -> int:
 
 def merged_cloud(clouds: dict[int, np.ndarray], cameras: dict[int, np.ndarray], motion: np.ndarray,
                  centre_offset: int, max_offset: int,
-                 max_points: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                 max_points: int) -> tuple[np.ndarray, np.ndarray]:
     """Clouds of the frames within ``max_offset`` of ``centre_offset``, moved to the target time.
 
-    Returns (points (N, 3), camera centres (F, 3) moved the same way, i.e. relative to the
-    instance at the target time, and the number of points each camera contributed (F,)).
+    Returns (points (N, 3), the centre of the camera that saw each point (N, 3), moved the same
+    way, i.e. relative to the instance at the target time), subsampled to ``max_points``.
     """
     offs = [o for o in sorted(clouds) if abs(o - centre_offset) <= max_offset]
     pts = np.concatenate([to_target_time(clouds[o], o, motion) for o in offs])
-    cams = np.array([to_target_time(cameras[o], o, motion) for o in offs])
-    counts = np.array([len(clouds[o]) for o in offs], float)
-    return subsample(pts, max_points), cams, counts
+    cams = np.concatenate([np.repeat(to_target_time(cameras[o], o, motion)[None], len(clouds[o]), 0)
+                           for o in offs])
+    if len(pts) > max_points:
+        keep = np.sort(np.random.default_rng(0).choice(len(pts), max_points, replace=False))
+        pts, cams = pts[keep], cams[keep]
+    return pts, cams
 
 
 # --------------------------------------------------------------------------------------------
@@ -293,7 +296,7 @@ def dominant_yaw(points: np.ndarray, cfg: OrientationConfig) -> float:
         yaw = best if extents[0] >= extents[1] else best + np.pi / 2
     else:
         yaw = best if abs(np.cos(best)) >= abs(np.sin(best)) else best + np.pi / 2
-    return float(wrap_angle(yaw + np.pi / 2) - np.pi / 2)
+    return float((yaw + np.pi / 2) % np.pi - np.pi / 2)
 
 
 def yaw_from_velocity(velocity: np.ndarray) -> float:
@@ -305,49 +308,97 @@ def yaw_from_velocity(velocity: np.ndarray) -> float:
 # Centre correction
 # --------------------------------------------------------------------------------------------
 
-def fit_footprint(points: np.ndarray, yaw: float, cameras: np.ndarray, weights: np.ndarray,
-                  cfg: FootprintConfig) -> tuple[np.ndarray, np.ndarray]:
-    """Centre and size of a box of (at least) typical car size around the visible surface.
+def ray_residuals(local: np.ndarray, cam_local: np.ndarray, half: np.ndarray,
+                  reference_range: float) -> np.ndarray:
+    """Residuals of stereo points against a footprint rectangle, along their viewing rays (2D).
 
-    Along each horizontal box axis the cloud spans ``[lo, hi]`` (robust percentiles) and the box
-    length is ``clip(hi - lo, typical, max)``. A camera further than ``cfg.visibility_margin``
-    below ``lo`` sees the low face, so the box starts at ``lo``: centre ``lo + L/2``; likewise
-    ``hi - L/2`` for cameras beyond ``hi``. The centre is the average of these, weighted by the
-    points each camera contributed; when no camera sees either face (the axis is seen edge-on)
-    it is the middle of ``[lo, hi]``. Vertically the box is centred on the cloud's extent (roof
-    and underside are rarely seen face-on from a car-mounted camera).
+    Stereo errors lie along the viewing ray and grow with the square of the range, so each point
+    is compared with the entry point of its ray (camera -> point) into the rectangle
+    ``|x| <= half`` (x-z footprint, box-local): the residual is the range difference scaled by
+    ``(reference_range / range)^2``, i.e. expressed as the equivalent error at
+    ``reference_range``. A ray that misses the rectangle gets the distance of the rectangle from
+    the ray's line (how far the box is off the observed silhouette), unscaled.
+    """
+    ray = local - cam_local
+    rng = np.linalg.norm(ray, axis=1)
+    d = ray / np.maximum(rng, 1e-9)[:, None]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = np.where(np.abs(d) > 1e-12, 1.0 / d, np.inf)
+        t1, t2 = (-half - cam_local) * inv, (half - cam_local) * inv
+    t1 = np.where(np.isnan(t1), -np.inf, t1)
+    t2 = np.where(np.isnan(t2), np.inf, t2)
+    t_near = np.minimum(t1, t2).max(axis=1)
+    t_far = np.maximum(t1, t2).min(axis=1)
+    hit = (t_near <= t_far) & (t_far > 0)
+    res = np.empty(len(local))
+    res[hit] = (rng[hit] - np.maximum(t_near[hit], 0.0)) * (reference_range / np.maximum(rng[hit], 1e-9)) ** 2
+    if np.any(~hit):
+        corners = np.array([[-1, -1], [-1, 1], [1, -1], [1, 1]], float) * half
+        normal = np.stack([-d[~hit, 1], d[~hit, 0]], axis=1)
+        rel = corners[None, :, :] - cam_local[~hit, None, :]
+        res[~hit] = np.abs(np.einsum("nkd,nd->nk", rel, normal)).min(axis=1)
+    return res
+
+
+def fit_footprint(points: np.ndarray, yaw: float, cameras: np.ndarray,
+                  cfg: FootprintConfig) -> tuple[np.ndarray, np.ndarray]:
+    """Centre and size of a box of (at least) typical car size behind the visible surface.
+
+    Size: along each box axis the cloud spans ``[lo, hi]`` (robust percentiles); the box extent is
+    ``clip(hi - lo, typical, max)``.
+
+    Initial horizontal centre, per box axis: a camera further than ``cfg.visibility_margin``
+    below ``lo`` sees the low face, so the box starts at ``lo`` (centre ``lo + L/2``); likewise
+    ``hi - L/2`` for cameras beyond ``hi``; these are averaged over the points' cameras, and when
+    no camera sees either face (the axis is seen edge-on) the centre is the middle of
+    ``[lo, hi]``.
+
+    Refinement: the edge percentiles are pulled towards the cameras by the stereo noise (which
+    grows with the square of the depth), so the horizontal centre is then refined by robust least
+    squares (``scipy.optimize.least_squares``, soft-L1 loss of scale ``cfg.fit_loss_scale``) of
+    :func:`ray_residuals`: every point is compared with where its viewing ray enters the box, so
+    noise averages out instead of biasing an edge, and rays missing the box pull it back under
+    the observed silhouette. Vertically the box is centred on the cloud's
+    extent (roof and underside are rarely seen face-on from a car-mounted camera).
 
     Args:
         points: (N, 3) cloud at the target time, optimisation frame.
         yaw: box yaw.
-        cameras: (F, 3) camera centres relative to the instance at the target time.
-        weights: (F,) points each camera contributed.
+        cameras: (N, 3) centre of the camera that saw each point, relative to the instance at
+            the target time.
     Returns (centre (3,), size (3,) = (w, h, l)).
     """
+    from scipy.optimize import least_squares
+
     length_ax, width_ax = _axes(yaw)
+    basis = np.stack([width_ax, length_ax])              # rows: local x (width), local z (length)
     typical, largest = np.asarray(cfg.typical_size, float), np.asarray(cfg.max_size, float)
     p_lo, p_hi = cfg.edge_percentile, 100.0 - cfg.edge_percentile
-    centre = np.zeros(3)
-    size = np.zeros(3)
-    # horizontal: index 0 = width axis (local x), 2 = length axis (local z)
-    horiz = {}
-    for k, ax in ((0, width_ax), (2, length_ax)):
-        proj = points[:, [0, 2]] @ ax
-        lo, hi = np.percentile(proj, [p_lo, p_hi])
-        dim = float(np.clip(hi - lo, typical[k], largest[k]))
-        cam = cameras[:, [0, 2]] @ ax
-        w_lo = weights[cam < lo - cfg.visibility_margin].sum()
-        w_hi = weights[cam > hi + cfg.visibility_margin].sum()
+    xz, cam_xz = points[:, [0, 2]], cameras[:, [0, 2]]
+    local, cam_local = xz @ basis.T, cam_xz @ basis.T
+    centre_local, half = np.zeros(2), np.zeros(2)
+    for k, size_k in ((0, 0), (1, 2)):
+        lo, hi = np.percentile(local[:, k], [p_lo, p_hi])
+        dim = float(np.clip(hi - lo, typical[size_k], largest[size_k]))
+        w_lo = float(np.sum(cam_local[:, k] < lo - cfg.visibility_margin))
+        w_hi = float(np.sum(cam_local[:, k] > hi + cfg.visibility_margin))
         if w_lo + w_hi > 0:
-            c = (w_lo * (lo + 0.5 * dim) + w_hi * (hi - 0.5 * dim)) / (w_lo + w_hi)
+            centre_local[k] = (w_lo * (lo + 0.5 * dim) + w_hi * (hi - 0.5 * dim)) / (w_lo + w_hi)
         else:
-            c = 0.5 * (lo + hi)
-        horiz[k] = c
-        size[k] = dim
-    centre[[0, 2]] = horiz[0] * width_ax + horiz[2] * length_ax
+            centre_local[k] = 0.5 * (lo + hi)
+        half[k] = 0.5 * dim
+    if cfg.refine:
+        def residuals(c: np.ndarray) -> np.ndarray:
+            return ray_residuals(local - c, cam_local - c, half, cfg.reference_range)
+        fit = least_squares(residuals, centre_local, loss="soft_l1", f_scale=cfg.fit_loss_scale,
+                            x_scale=1.0, diff_step=1e-3)
+        if fit.success and np.linalg.norm(fit.x - centre_local) <= cfg.max_refine_shift:
+            centre_local = fit.x
+    centre = np.zeros(3)
+    centre[[0, 2]] = centre_local @ basis
     y_lo, y_hi = np.percentile(points[:, _UP_AXIS], [p_lo, p_hi])
     centre[_UP_AXIS] = 0.5 * (y_lo + y_hi)
-    size[_UP_AXIS] = float(np.clip(y_hi - y_lo, typical[1], largest[1]))
+    size = np.array([2 * half[0], float(np.clip(y_hi - y_lo, typical[1], largest[1])), 2 * half[1]])
     return centre, size
 
 
@@ -367,10 +418,10 @@ def initialise_instance(instance_id: int, clouds: dict[int, np.ndarray],
     cloud_mean = to_target_time(clouds[ref], ref, motion).mean(axis=0)
     fp = cfg.footprint
     max_off = fp.aggregate_dynamic_offset if dynamic else fp.aggregate_static_offset
-    pts, cams, counts = merged_cloud(clouds, cameras, motion, ref, max_off, fp.max_fit_points)
+    pts, cams = merged_cloud(clouds, cameras, motion, ref, max_off, fp.max_fit_points)
     yaw = yaw_from_velocity(velocity) if dynamic else dominant_yaw(pts, cfg.orientation)
     if fp.enabled:
-        centre, size = fit_footprint(pts, yaw, cams, counts, fp)
+        centre, size = fit_footprint(pts, yaw, cams, fp)
     else:
         centre, size = cloud_mean.copy(), None
     return InstanceInit(instance_id=instance_id, centre=centre, yaw=yaw, velocity=velocity,
