@@ -1,0 +1,533 @@
+r"""Instance signed distance fields: boxes with velocity plus a hypernetwork residual field.
+
+This module is the geometry behind the ``vsrd_silhouette`` and ``sdf_tracer`` integrators. It
+depends only on Mitsuba 3 and Dr.Jit.
+
+Box parameters (instance-major flat Dr.Jit arrays, all differentiable except ``dynamic``)
+-----------------------------------------------------------------------------------------
+
+=================  =====  =====================================================================
+name               size   decoding
+=================  =====  =====================================================================
+``box_dims``       3N     half-extents ``d = lo + (hi - lo) * sigmoid(raw)`` (:class:`BoxRanges`)
+``box_centre``     3N     centre ``l = lo + (hi - lo) * sigmoid(raw)`` in the scene frame
+``box_yaw``        2N     unnormalised ``(cos, sin)`` of the yaw about +y, normalised at use
+``box_velocity``   3N     velocity ``v`` in scene units per unit of ray time (frame index)
+``box_dynamic``    N      ``m`` in {0, 1}; the centre at ray time ``t`` is ``l + m v t``
+=================  =====  =====================================================================
+
+The scene frame is y-down (OpenCV-like: x right, y down, z forward); the yaw rotation is
+``R_y = [[c, 0, s], [0, 1, 0], [-s, 0, c]]`` so the box length axis (local +z) points along
+``(s, 0, c)``.
+
+Box SDF (REFERENCE §2), in box-local coordinates ``q = |p_local| - d``:
+
+.. math::
+
+    B(p) = \sqrt{\lVert \max(q, 0) \rVert^2} + \min(\max(q_x, q_y, q_z), 0)
+
+with a safe square root whose derivative at 0 is 0, so points inside the box, on faces and on
+edges have finite gradients.
+
+Residual distance field (RDF)
+-----------------------------
+
+``F_n(p) = B_n(p) + R_n(p)`` with ``R_n(p) = r_max * sigmoid(G(x; phi_n) - shift) >= 0`` so the
+surface stays inside its box. ``G`` is a small per-instance MLP (48 -> 16 -> 16 -> 16 -> 16 -> 1,
+GELU, parameter-free layer norm before each hidden activation) whose 1617 weights
+``phi_n = H(z_n; psi)`` come from a shared hypernetwork ``H`` (256 -> 4 x (256, LayerNorm, GELU)
+-> 1617) applied to a learnable embedding ``z_n``. The input ``x`` is the box-local point
+mirrored in x (left/right symmetry), scaled by ``1/100`` and encoded with 8 sinusoidal
+frequencies ``2^k pi`` (48 features). We use the shifted sigmoid of the authors' code rather than
+the paper's softplus: it bounds the residual's reach by ``r_max``, which is what lets the
+integrators cull instances with a box enlarged by a known margin. ``shift`` (default 3) starts
+the residual near ``0.05 r_max`` so switching the field on does not shrink every silhouette.
+
+The MLPs run in Dr.Jit *tensor mode* (batched GEMM kernels), not cooperative vectors: a coop
+matvec uses one weight matrix per kernel, and DRJIT.md measured tensor-mode backward 2-3x faster
+on x86 (atomics-bound coop backward). Points are grouped per instance and the residual is only
+evaluated where it can change the result (inside the instance's box enlarged by the caller's
+reach), see :meth:`InstanceField.instance_sdfs`.
+
+Scene SDF and labels
+--------------------
+
+``F(p) = min_n F_n(p)``; the soft instance label at ``p`` is
+``softmin_n(F_n(p) / tau)``, computed stably as ``exp((m - F_n)/tau) / sum_k exp((m - F_k)/tau)``
+with ``m = min_k F_k`` detached.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Sequence
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+# ----------------------------------------------------------------------------------------------
+# Numerics (Dr.Jit 1.5 has no softplus / log1p; these are exact at 0 and overflow-free)
+# ----------------------------------------------------------------------------------------------
+
+
+def softplus(x):
+    """``log(1 + exp(x))`` without overflow; derivative ``sigmoid(x)`` (0.5 at 0)."""
+    return dr.maximum(x, 0.0) + dr.log(1.0 + dr.exp(dr.minimum(x, -x)))
+
+
+def sigmoid(x):
+    """Logistic function with finite values and derivatives for any finite ``x``."""
+    z = dr.exp(-dr.abs(x))
+    return dr.select(x >= 0, 1.0 / (1.0 + z), z / (1.0 + z))
+
+
+def gelu(x):
+    """GELU, tanh approximation (Hendrycks & Gimpel)."""
+    return 0.5 * x * (1.0 + dr.tanh(0.7978845608028654 * (x + 0.044715 * x * x * x)))
+
+
+def logit_np(p: np.ndarray, eps: float = 1e-6) -> np.ndarray:
+    """Inverse of the sigmoid (NumPy), clipped away from 0 and 1."""
+    p = np.clip(np.asarray(p, dtype=np.float64), eps, 1.0 - eps)
+    return np.log(p) - np.log1p(-p)
+
+
+# ----------------------------------------------------------------------------------------------
+# Properties helpers
+# ----------------------------------------------------------------------------------------------
+
+
+def _fmt(values: np.ndarray) -> str:
+    return " ".join(f"{float(v):.9g}" for v in np.asarray(values, dtype=np.float64).ravel())
+
+
+def instance_properties(centres, sizes, yaws, velocities=None, dynamic=None) -> dict[str, str | int]:
+    """Plugin properties describing ``N`` boxes, for ``mi.load_dict`` or XML ``<string>`` tags.
+
+    Args:
+        centres: (N, 3) box centres in the scene frame.
+        sizes: (N, 3) full extents (width, height, length) along the box-local (x, y, z) axes.
+        yaws: (N,) yaw angles in radians (length axis along ``(sin yaw, 0, cos yaw)``).
+        velocities: (N, 3) velocities per unit of ray time, or None for zeros.
+        dynamic: (N,) 0/1 flags, or None for all static.
+    """
+    centres = np.asarray(centres, dtype=np.float64).reshape(-1, 3)
+    n = len(centres)
+    sizes = np.asarray(sizes, dtype=np.float64).reshape(n, 3)
+    yaws = np.asarray(yaws, dtype=np.float64).reshape(n)
+    velocities = np.zeros((n, 3)) if velocities is None else np.asarray(velocities).reshape(n, 3)
+    dynamic = np.zeros(n) if dynamic is None else np.asarray(dynamic, dtype=np.float64).reshape(n)
+    return {"num_instances": n, "centres": _fmt(centres), "sizes": _fmt(sizes),
+            "yaws": _fmt(yaws), "velocities": _fmt(velocities), "dynamic": _fmt(dynamic)}
+
+
+def _floats(props: mi.Properties, key: str, count: int, default: float | None = None) -> np.ndarray:
+    if key not in props:
+        if default is None:
+            raise ValueError(f"vsrd plugin: property '{key}' is required")
+        return np.full(count, default, dtype=np.float64)
+    text = props[key]
+    values = np.array([float(v) for v in str(text).replace(",", " ").split()], dtype=np.float64)
+    if values.size != count:
+        raise ValueError(f"vsrd plugin: property '{key}' has {values.size} values, expected {count}")
+    if not np.all(np.isfinite(values)):
+        raise ValueError(f"vsrd plugin: property '{key}' has non-finite values")
+    return values
+
+
+# ----------------------------------------------------------------------------------------------
+# Boxes
+# ----------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class BoxRanges:
+    """Decoding ranges of the box parameters (REFERENCE §1, widened to cover real vehicles).
+
+    Half-extents (x = width, y = height, z = length): full sizes 1.1-2.7 m wide, 1.0-3.3 m high,
+    2.2-7.2 m long, covering city cars (2.5 m), low sports cars (1.16 m high), pickups and vans
+    (5.2-6 m long, 2.3 m wide) that the reference's 1.5-2.0 x 1.5-2.0 x 3-5 m cannot represent.
+    Centres: +-60 m laterally, -5..8 m vertically (y down, camera at 0), -5..110 m forward.
+    """
+
+    half_lo: tuple[float, float, float] = (0.55, 0.5, 1.1)
+    half_hi: tuple[float, float, float] = (1.35, 1.65, 3.6)
+    centre_lo: tuple[float, float, float] = (-60.0, -5.0, -5.0)
+    centre_hi: tuple[float, float, float] = (60.0, 8.0, 110.0)
+
+    @staticmethod
+    def from_props(props: mi.Properties) -> "BoxRanges":
+        d = BoxRanges()
+        kw = {}
+        for name in ("half_lo", "half_hi", "centre_lo", "centre_hi"):
+            if name in props:
+                kw[name] = tuple(_floats(props, name, 3))
+        return BoxRanges(**{**d.__dict__, **kw})
+
+    def encode(self, centres: np.ndarray, sizes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Raw ``(box_dims, box_centre)`` (flat) for decoded centres (N,3) and full sizes (N,3)."""
+        lo, hi = np.array(self.half_lo), np.array(self.half_hi)
+        half = 0.5 * np.asarray(sizes, dtype=np.float64).reshape(-1, 3)
+        raw_dims = logit_np((half - lo) / (hi - lo))
+        clo, chi = np.array(self.centre_lo), np.array(self.centre_hi)
+        raw_centre = logit_np((np.asarray(centres, dtype=np.float64).reshape(-1, 3) - clo) / (chi - clo))
+        return raw_dims.ravel(), raw_centre.ravel()
+
+
+@dataclass
+class DecodedBoxes:
+    """Decoded per-instance box parameters as small (width-N) Dr.Jit arrays."""
+
+    half: list  # 3 x Float(N)
+    centre: list  # 3 x Float(N)
+    cos: mi.Float
+    sin: mi.Float
+    velocity: list  # 3 x Float(N)
+    dynamic: mi.Float
+
+
+@dataclass
+class BoxView:
+    """One instance's decoded box broadcast to a lane width (full-width gathers, see DRJIT.md)."""
+
+    half: mi.Vector3f
+    centre: mi.Point3f  # already moved to the lane's ray time
+    cos: mi.Float
+    sin: mi.Float
+
+    def to_local(self, p: mi.Point3f) -> mi.Vector3f:
+        """Box-local coordinates of scene-frame points (``R_y^T (p - centre)``)."""
+        d = p - self.centre
+        return mi.Vector3f(self.cos * d.x - self.sin * d.z, d.y, self.sin * d.x + self.cos * d.z)
+
+    def dir_to_local(self, v: mi.Vector3f) -> mi.Vector3f:
+        return mi.Vector3f(self.cos * v.x - self.sin * v.z, v.y, self.sin * v.x + self.cos * v.z)
+
+    def dir_to_world(self, v: mi.Vector3f) -> mi.Vector3f:
+        return mi.Vector3f(self.cos * v.x + self.sin * v.z, v.y, -self.sin * v.x + self.cos * v.z)
+
+
+def box_sdf_local(p: mi.Vector3f, half: mi.Vector3f) -> mi.Float:
+    """Signed distance to an axis-aligned box of half-extents ``half`` centred at the origin."""
+    q = dr.abs(p) - half
+    qo = dr.maximum(q, 0.0)
+    outside = dr.safe_sqrt(dr.squared_norm(qo))
+    inside = dr.minimum(dr.maximum(dr.maximum(q.x, q.y), q.z), 0.0)
+    return outside + inside
+
+
+def box_normal_local(p: mi.Vector3f, half: mi.Vector3f) -> mi.Vector3f:
+    """Outward unit gradient of :func:`box_sdf_local` (inside: normal of the nearest face)."""
+    q = dr.abs(p) - half
+    sgn = dr.select(p >= 0, 1.0, -1.0)
+    qo = dr.maximum(q, 0.0)
+    n_out = qo * sgn
+    inside = dr.max(q) <= 0
+    qx_max = (q.x >= q.y) & (q.x >= q.z)
+    qy_max = ~qx_max & (q.y >= q.z)
+    n_in = mi.Vector3f(dr.select(qx_max, sgn.x, 0.0), dr.select(qy_max, sgn.y, 0.0),
+                       dr.select(~qx_max & ~qy_max, sgn.z, 0.0))
+    n = dr.select(inside, n_in, n_out)
+    return n / dr.maximum(dr.norm(n), 1e-12)
+
+
+def ray_box_interval(o_l: mi.Vector3f, d_l: mi.Vector3f, half) -> tuple[mi.Float, mi.Float]:
+    """Slab test in box-local coordinates: entry and exit ray parameters ``(t0, t1)``.
+
+    Empty when ``t0 > t1``. Safe for direction components equal to 0 (rays parallel to a face).
+    """
+    tiny = 1e-12
+    inv = mi.Vector3f(*[1.0 / dr.select(dr.abs(c) < tiny, dr.select(c >= 0, tiny, -tiny), c)
+                        for c in (d_l.x, d_l.y, d_l.z)])
+    ta = (-half - o_l) * inv
+    tb = (half - o_l) * inv
+    t0 = dr.max(dr.minimum(ta, tb))
+    t1 = dr.min(dr.maximum(ta, tb))
+    return t0, t1
+
+
+# ----------------------------------------------------------------------------------------------
+# Residual field
+# ----------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class ResidualConfig:
+    """Architecture of the residual distance field (REFERENCE §2 defaults)."""
+
+    embedding_dim: int = 256
+    hyper_width: int = 256
+    hyper_layers: int = 4
+    mlp_width: int = 16
+    mlp_layers: int = 4
+    frequencies: int = 8
+    input_scale: float = 0.01  # box-local metres -> encoder input
+    max_residual: float = 1.0  # r_max (metres)
+    shift: float = 3.0  # residual = r_max * sigmoid(g - shift)
+    seed: int = 0
+
+    @property
+    def in_features(self) -> int:
+        return 6 * self.frequencies
+
+    def mlp_shapes(self) -> list[tuple[int, int]]:
+        """(out, in) of each layer of the per-instance MLP G."""
+        dims = [self.in_features] + [self.mlp_width] * self.mlp_layers + [1]
+        return [(dims[i + 1], dims[i]) for i in range(len(dims) - 1)]
+
+    @property
+    def num_mlp_params(self) -> int:
+        return sum(o * i + o for o, i in self.mlp_shapes())
+
+
+def _tensor(values, shape) -> mi.TensorXf:
+    return mi.TensorXf(values, shape=tuple(shape))
+
+
+def _layer_norm_cols(x: mi.TensorXf, eps: float = 1e-5) -> mi.TensorXf:
+    """Parameter-free layer norm over axis 0 of a (features, n) tensor."""
+    mean = dr.mean(x, axis=0)
+    xc = x - mean
+    var = dr.mean(xc * xc, axis=0)
+    return xc / dr.sqrt(var + eps)
+
+
+class ResidualField:
+    """Hypernetwork-generated per-instance residual MLPs (see module docstring).
+
+    Parameters (flat Dr.Jit arrays): ``embedding`` (N * D) and per hypernetwork layer ``hyper_w{i}``
+    (out * in, row-major) and ``hyper_b{i}`` (out). Computations use transposed (features, n)
+    tensors so per-point values come out contiguous.
+    """
+
+    def __init__(self, num_instances: int, cfg: ResidualConfig):
+        self.cfg = cfg
+        self.n = num_instances
+        rng = np.random.default_rng(cfg.seed)
+        self.params: dict[str, mi.Float] = {}
+        self.params["embedding"] = mi.Float(
+            rng.normal(0.0, 1.0, size=num_instances * cfg.embedding_dim).astype(np.float32))
+        dims = [cfg.embedding_dim] + [cfg.hyper_width] * cfg.hyper_layers + [cfg.num_mlp_params]
+        for i in range(len(dims) - 1):
+            fan_in, fan_out = dims[i], dims[i + 1]
+            bound = math.sqrt(6.0 / fan_in)  # Kaiming-uniform for GELU-ish activations
+            if i == len(dims) - 2:
+                bound *= 0.1  # small generated weights: G starts close to its biases
+            w = rng.uniform(-bound, bound, size=(fan_out, fan_in)).astype(np.float32)
+            self.params[f"hyper_w{i}"] = mi.Float(w.ravel())
+            self.params[f"hyper_b{i}"] = mi.Float(np.zeros(fan_out, dtype=np.float32))
+        self.num_hyper_layers = len(dims) - 1
+        self._dims = dims
+
+    def generate_weights(self) -> mi.TensorXf:
+        """Hypernetwork forward for all instances: a (num_mlp_params, N) tensor."""
+        x = _tensor(self.params["embedding"], (self.n, self.cfg.embedding_dim))
+        # (D, N) layout: transpose the embedding through a gather
+        idx = dr.arange(mi.UInt32, self.n * self.cfg.embedding_dim)
+        d = self.cfg.embedding_dim
+        col = idx // self.n
+        row = idx % self.n
+        x = _tensor(dr.gather(mi.Float, x.array, row * d + col), (d, self.n))
+        for i in range(self.num_hyper_layers):
+            out_f, in_f = self._dims[i + 1], self._dims[i]
+            w = _tensor(self.params[f"hyper_w{i}"], (out_f, in_f))
+            b = _tensor(dr.repeat(self.params[f"hyper_b{i}"], self.n), (out_f, self.n))
+            x = w @ x + b
+            if i < self.num_hyper_layers - 1:
+                x = gelu(_layer_norm_cols(x))
+        return x
+
+    def encode(self, p_local: mi.Vector3f) -> mi.TensorXf:
+        """Mirrored, scaled sinusoidal encoding of box-local points -> (48, n) tensor."""
+        cfg = self.cfg
+        coords = [dr.abs(p_local.x) * cfg.input_scale, p_local.y * cfg.input_scale,
+                  p_local.z * cfg.input_scale]
+        feats = []
+        for c in coords:
+            for k in range(cfg.frequencies):
+                a = c * ((2.0 ** k) * math.pi)
+                feats += [dr.sin(a), dr.cos(a)]
+        n = dr.width(p_local.x)
+        return _tensor(dr.concat(feats), (len(feats), n))
+
+    def evaluate(self, weights: mi.TensorXf, k: int, p_local: mi.Vector3f) -> mi.Float:
+        """Residual ``R_k(p)`` (>= 0) at box-local points of instance ``k``."""
+        cfg = self.cfg
+        n = dr.width(p_local.x)
+        col = dr.gather(mi.Float, weights.array,
+                        dr.arange(mi.UInt32, cfg.num_mlp_params) * self.n + k)
+        x = self.encode(p_local)
+        offset = 0
+        shapes = cfg.mlp_shapes()
+        for i, (o, fi) in enumerate(shapes):
+            w = _tensor(dr.gather(mi.Float, col, dr.arange(mi.UInt32, o * fi) + offset), (o, fi))
+            offset += o * fi
+            b = dr.gather(mi.Float, col, dr.arange(mi.UInt32, o) + offset)
+            offset += o
+            x = w @ x + _tensor(dr.repeat(b, n), (o, n))
+            if i < len(shapes) - 1:
+                x = gelu(_layer_norm_cols(x))
+        return cfg.max_residual * sigmoid(x.array - cfg.shift)
+
+
+# ----------------------------------------------------------------------------------------------
+# The instance field: boxes (+ velocity) (+ residual)
+# ----------------------------------------------------------------------------------------------
+
+
+class InstanceField:
+    """All instances of a scene: differentiable box parameters and an optional residual field.
+
+    Built from plugin properties (``num_instances``, ``centres``, ``sizes``, ``yaws``,
+    ``velocities``, ``dynamic``, optional ranges ``half_lo``/``half_hi``/``centre_lo``/
+    ``centre_hi``, ``residual`` (bool), ``residual_seed``).
+    """
+
+    PREFIX_BOX = "box_"
+
+    def __init__(self, props: mi.Properties):
+        n = int(props.get("num_instances", 0))
+        if n < 0:
+            raise ValueError("vsrd plugin: num_instances must be >= 0")
+        self.n = n
+        self.ranges = BoxRanges.from_props(props)
+        centres = _floats(props, "centres", 3 * n, None if n else 0.0).reshape(n, 3)
+        sizes = _floats(props, "sizes", 3 * n, None if n else 1.0).reshape(n, 3)
+        yaws = _floats(props, "yaws", n, 0.0)
+        vel = _floats(props, "velocities", 3 * n, 0.0)
+        dyn = _floats(props, "dynamic", n, 0.0)
+        raw_dims, raw_centre = self.ranges.encode(centres, sizes)
+        yaw_vec = np.stack([np.cos(yaws), np.sin(yaws)], axis=1).ravel()
+        self.params: dict[str, mi.Float] = {
+            "box_dims": mi.Float(raw_dims.astype(np.float32)),
+            "box_centre": mi.Float(raw_centre.astype(np.float32)),
+            "box_yaw": mi.Float(yaw_vec.astype(np.float32)),
+            "box_velocity": mi.Float(vel.astype(np.float32)),
+            "box_dynamic": mi.Float(dyn.astype(np.float32)),
+        }
+        self.use_residual = bool(props.get("residual", False))
+        rcfg = ResidualConfig(seed=int(props.get("residual_seed", 0)),
+                              shift=float(props.get("residual_shift", ResidualConfig.shift)))
+        self.residual = ResidualField(n, rcfg) if n else None
+        self._weights = None
+
+    # -- parameters ------------------------------------------------------------------------
+    def traverse(self, cb: mi.TraversalCallback) -> None:
+        diff = mi.ParamFlags.Differentiable
+        for k in ("box_dims", "box_centre", "box_yaw", "box_velocity"):
+            cb.put(k, self.params[k], diff)
+        cb.put("box_dynamic", self.params["box_dynamic"], mi.ParamFlags.NonDifferentiable)
+        if self.residual is not None:
+            for k, v in self.residual.params.items():
+                cb.put(f"rdf_{k}", v, diff)
+
+    def set_param(self, key: str, value) -> None:
+        if key in self.params:
+            self.params[key] = value
+        elif key.startswith("rdf_") and self.residual is not None:
+            self.residual.params[key[4:]] = value
+        else:
+            raise KeyError(key)
+
+    @property
+    def residual_reach(self) -> float:
+        """Largest amount by which the residual can raise an instance SDF (0 when off)."""
+        return self.residual.cfg.max_residual if (self.use_residual and self.residual) else 0.0
+
+    # -- decoding ----------------------------------------------------------------------------
+    def decode(self) -> DecodedBoxes:
+        n, r = self.n, self.ranges
+        idx = [dr.arange(mi.UInt32, n) * 3 + j for j in range(3)]
+        raw_d = [dr.gather(mi.Float, self.params["box_dims"], i) for i in idx]
+        raw_c = [dr.gather(mi.Float, self.params["box_centre"], i) for i in idx]
+        half = [r.half_lo[j] + (r.half_hi[j] - r.half_lo[j]) * sigmoid(raw_d[j]) for j in range(3)]
+        centre = [r.centre_lo[j] + (r.centre_hi[j] - r.centre_lo[j]) * sigmoid(raw_c[j])
+                  for j in range(3)]
+        i2 = dr.arange(mi.UInt32, n) * 2
+        yc = dr.gather(mi.Float, self.params["box_yaw"], i2)
+        ys = dr.gather(mi.Float, self.params["box_yaw"], i2 + 1)
+        norm = dr.safe_sqrt(yc * yc + ys * ys)
+        ok = norm > 1e-8
+        inv = 1.0 / dr.select(ok, norm, 1.0)
+        cos = dr.select(ok, yc * inv, 1.0)
+        sin = dr.select(ok, ys * inv, 0.0)
+        vel = [dr.gather(mi.Float, self.params["box_velocity"], i) for i in idx]
+        return DecodedBoxes(half, centre, cos, sin, vel, mi.Float(self.params["box_dynamic"]))
+
+    def view(self, dec: DecodedBoxes, k: int, time: mi.Float, width: int) -> BoxView:
+        """Instance ``k`` broadcast to ``width`` lanes at per-lane ray time ``time``."""
+        ik = dr.full(mi.UInt32, k, width)
+
+        def g(a):
+            return dr.gather(mi.Float, a, ik)
+
+        m = g(dec.dynamic) * time
+        centre = mi.Point3f(*[g(dec.centre[j]) + m * g(dec.velocity[j]) for j in range(3)])
+        return BoxView(mi.Vector3f(*[g(h) for h in dec.half]), centre, g(dec.cos), g(dec.sin))
+
+    def numpy_boxes(self) -> dict[str, np.ndarray]:
+        """Decoded parameters as NumPy: centres (N,3), sizes (N,3), yaws (N,), velocities, dynamic."""
+        with dr.suspend_grad():
+            dec = self.decode()
+            return {
+                "centres": np.stack([np.array(c) for c in dec.centre], 1).reshape(self.n, 3),
+                "sizes": 2.0 * np.stack([np.array(h) for h in dec.half], 1).reshape(self.n, 3),
+                "yaws": np.arctan2(np.array(dec.sin), np.array(dec.cos)).reshape(self.n),
+                "velocities": np.stack([np.array(v) for v in dec.velocity], 1).reshape(self.n, 3),
+                "dynamic": np.array(dec.dynamic).reshape(self.n),
+            }
+
+    # -- evaluation --------------------------------------------------------------------------
+    def residual_weights(self) -> mi.TensorXf | None:
+        if not (self.use_residual and self.residual is not None):
+            return None
+        return self.residual.generate_weights()
+
+    def instance_sdfs(self, dec: DecodedBoxes, p: mi.Point3f, time: mi.Float,
+                      weights: mi.TensorXf | None = None, reach: float = 0.0,
+                      instances: Sequence[int] | None = None) -> list[mi.Float]:
+        """SDF of every instance at points ``p`` (scene frame) at ray times ``time``.
+
+        With ``weights`` (from :meth:`residual_weights`) the residual is added wherever the point
+        lies inside the instance's box enlarged by ``reach`` in every local axis; elsewhere the
+        residual can only raise an SDF that is already ``>= reach`` and is skipped.
+        """
+        width = dr.width(p.x)
+        out = []
+        for k in (range(self.n) if instances is None else instances):
+            bv = self.view(dec, k, time, width)
+            pl = bv.to_local(p)
+            f = box_sdf_local(pl, bv.half)
+            if weights is not None:
+                with dr.suspend_grad():
+                    inside = dr.all(dr.abs(pl) <= bv.half + reach)
+                idx = dr.compress(inside)
+                if dr.width(idx) > 0:
+                    pk = mi.Vector3f(*[dr.gather(mi.Float, c, idx) for c in (pl.x, pl.y, pl.z)])
+                    r = self.residual.evaluate(weights, k, pk)
+                    extra = dr.zeros(mi.Float, width)
+                    dr.scatter_add(extra, r, idx)
+                    f = f + extra
+            out.append(f)
+        return out
+
+
+def scene_sdf(sdfs: Sequence[mi.Float]) -> mi.Float:
+    """Scene SDF: minimum over instances (gradient to the first instance on exact ties)."""
+    f = sdfs[0]
+    for g in sdfs[1:]:
+        f = dr.minimum(f, g)
+    return f
+
+
+def softmin_labels(sdfs: Sequence[mi.Float], tau) -> list[mi.Float]:
+    """Soft instance labels ``softmin(F_k / tau)`` (stable: shifted by the detached minimum)."""
+    m = dr.detach(scene_sdf(sdfs))
+    e = [dr.exp((m - f) / tau) for f in sdfs]
+    z = e[0]
+    for x in e[1:]:
+        z = z + x
+    inv = 1.0 / z
+    return [x * inv for x in e]
