@@ -12,6 +12,7 @@ the bottom centre. The meshes are not watertight: they are rendered by ray casti
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -182,6 +183,14 @@ def load_car_mesh(path: str | Path) -> CarModel:
     path = Path(path)
     if not path.is_file():
         raise DataError(path, "car mesh file does not exist")
+    stat = path.stat()
+    return _load_car_mesh(str(path.resolve()), stat.st_mtime_ns, stat.st_size)
+
+
+@functools.lru_cache(maxsize=16)
+def _load_car_mesh(name: str, mtime_ns: int, size: int) -> CarModel:
+    """Cached body of :func:`load_car_mesh` (keyed by the file's path, time stamp and size)."""
+    path = Path(name)
     try:
         loaded = trimesh.load(path, process=False, force="mesh")
     except Exception as exc:  # trimesh raises many types for corrupt files
@@ -205,6 +214,8 @@ def load_car_mesh(path: str | Path) -> CarModel:
     nz = np.divide(np.abs(normals[:, 2]), norm, out=np.ones_like(norm), where=norm > 0)
     high = tri[:, :, 2].mean(axis=1) > GLASS_HEIGHT_FRACTION * extent[2]
     mats = np.where(high & (nz < GLASS_MAX_NORMAL_Z), GLASS, BODY).astype(np.int8)
+    for array in (verts, faces, mats):  # shared by the cache
+        array.setflags(write=False)
     return CarModel(path.stem, verts, faces, mats)
 
 

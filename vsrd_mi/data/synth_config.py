@@ -145,10 +145,10 @@ class TextureConfig:
     """
 
     #: Road asphalt cells (along, across), metres, and the grey range.
-    road_cell: tuple[float, float] = (0.45, 0.3)
+    road_cell: tuple[float, float] = (0.6, 0.4)
     road_grey: tuple[int, int] = (62, 118)
     #: Number of grey levels of the piecewise constant textures (fewer -> smaller PNGs).
-    levels: int = 8
+    levels: int = 6
     #: Lane markings: width, dash length and dash period, metres; paint grey value.
     marking_width: float = 0.15
     dash_length: float = 3.0
@@ -159,7 +159,7 @@ class TextureConfig:
     sidewalk_cell: float = 0.4
     terrain_cell: float = 0.6
     #: Facade: brick cells (along, up), window grid (along, up) and window size, metres.
-    facade_cell: tuple[float, float] = (0.5, 0.35)
+    facade_cell: tuple[float, float] = (0.9, 0.6)
     window_grid: tuple[float, float] = (3.2, 3.0)
     window_size: tuple[float, float] = (1.3, 1.5)
     #: Car paint cells (3D, car frame), metres, and the modulation of the paint brightness.

@@ -396,7 +396,7 @@ FLU_TO_FRD = np.diag([1.0, -1.0, -1.0])
 def _ego_poses(config: SynthConfig, rig: Rig, cl: Centreline, track) -> tuple[list, list]:
     s, lateral, dyaw, pitch, roll = track
     lane_n = -0.5 * config.road.lane_width
-    rr_inv = homogeneous(rig.r_rect_00.T)
+    rr_inv = np.linalg.inv(homogeneous(rig.r_rect_00))  # R_rect_00 is orthonormal to ~1e-6 only
     poses, cams = [], []
     for k in range(len(s)):
         R_imu = rot_z(float(cl.heading(s[k])) + dyaw[k]) @ rot_y(pitch[k]) @ rot_x(roll[k]) @ FLU_TO_FRD
