@@ -47,6 +47,7 @@ class InstanceInit:
         cloud_mean: (3,) mean of the motion-compensated reference cloud (the paper's location,
             before the visible-surface correction).
         n_velocity_pairs: frame pairs whose ICP estimates were averaged into the velocity.
+        truncated: frame offsets where the instance's mask touches the image border.
     """
 
     instance_id: int
@@ -60,6 +61,7 @@ class InstanceInit:
     reference_offset: int = 0
     cloud_mean: np.ndarray | None = None
     n_velocity_pairs: int = 0
+    truncated: tuple[int, ...] = ()
 
     def to_box(self, default_size: tuple[float, float, float] = FootprintConfig.typical_size) -> Box3D:
         """The initial box (``default_size`` when no size was fitted); velocity kept as estimated."""
@@ -114,18 +116,23 @@ def weighted_median(values: np.ndarray, weights: np.ndarray) -> float:
 
 
 def robust_weighted_mean(estimates: np.ndarray, weights: np.ndarray, mad_factor: float,
-                         floor: float) -> tuple[np.ndarray, np.ndarray]:
+                         floor: float) -> tuple[np.ndarray, np.ndarray, float]:
     """Weighted mean of vector ``estimates`` (N, D) after dropping extreme ones.
 
     The centre is the component-wise weighted median; an estimate is extreme when its distance
-    to it exceeds ``max(mad_factor * 1.4826 * MAD, floor)``. Returns (mean, kept mask).
+    to it exceeds ``max(mad_factor * 1.4826 * MAD, floor)``. Returns (mean, kept mask, standard
+    error of the mean), the standard error being
+    ``sqrt(sum w_i^2 |x_i - mean|^2) / sum w_i`` over the kept estimates (0 for a single one).
     """
     med = np.array([weighted_median(estimates[:, k], weights) for k in range(estimates.shape[1])])
     dist = np.linalg.norm(estimates - med, axis=1)
     mad = weighted_median(dist, weights)
     keep = dist <= max(mad_factor * 1.4826 * mad, floor)
-    mean = np.average(estimates[keep], axis=0, weights=weights[keep])
-    return mean, keep
+    w, x = weights[keep], estimates[keep]
+    mean = np.average(x, axis=0, weights=w)
+    sq = np.sum((x - mean) ** 2, axis=1)
+    se = float(np.sqrt(np.sum(w ** 2 * sq)) / np.sum(w)) if len(w) > 1 else 0.0
+    return mean, keep, se
 
 
 def velocity_pairs(offsets: list[int], cfg: VelocityConfig) -> list[tuple[int, int]]:
@@ -138,18 +145,30 @@ def velocity_pairs(offsets: list[int], cfg: VelocityConfig) -> list[tuple[int, i
             for b in offsets[i + 1:i + 1 + cfg.pair_neighbours] if 0 < b - a <= cfg.max_gap]
 
 
-def estimate_velocity(clouds: dict[int, np.ndarray], cfg: VelocityConfig) -> tuple[np.ndarray, int]:
+@dataclass(frozen=True)
+class VelocityEstimate:
+    """Outcome of :func:`estimate_velocity`."""
+
+    #: Velocity (3,), metres per frame index (zero when no pair was usable).
+    velocity: np.ndarray
+    #: Frame pairs averaged (after dropping extreme estimates).
+    n_pairs: int
+    #: Standard error (m per frame index) of the mean over the pairs (0 for fewer than two).
+    standard_error: float
+
+
+def estimate_velocity(clouds: dict[int, np.ndarray], cfg: VelocityConfig) -> VelocityEstimate:
     """Velocity (m per frame index) of one instance from its clouds per frame offset (eq. 11-12).
 
     Every frame pair of :func:`velocity_pairs` among the frames with more than ``cfg.min_points``
-    points gives ``ICP translation / gap``; extreme estimates are dropped
-    (:func:`robust_weighted_mean`) and the rest averaged with weight ``min(M_a, M_b)`` (point
-    counts). Returns (velocity, number of averaged pairs); zero velocity and 0 when no pair exists.
+    points gives ``ICP translation / gap`` (:func:`~vsrd_mi.init.icp.register_translation`);
+    extreme estimates are dropped and the rest averaged with weight ``min(M_a, M_b)`` (point
+    counts) by :func:`robust_weighted_mean`.
     """
     usable = {o: c for o, c in clouds.items() if len(c) > cfg.min_points}
     pairs = velocity_pairs(list(usable), cfg)
     if not pairs:
-        return np.zeros(3), 0
+        return VelocityEstimate(np.zeros(3), 0, 0.0)
     trees = {o: cKDTree(c) for o, c in usable.items()}
     estimates, weights = [], []
     for a, b in pairs:
@@ -163,9 +182,9 @@ def estimate_velocity(clouds: dict[int, np.ndarray], cfg: VelocityConfig) -> tup
             v[_UP_AXIS] = 0.0
         estimates.append(v)
         weights.append(min(len(usable[a]), len(usable[b])))
-    mean, keep = robust_weighted_mean(np.array(estimates), np.array(weights, float),
-                                      cfg.outlier_mad_factor, cfg.outlier_floor)
-    return mean, int(keep.sum())
+    mean, keep, se = robust_weighted_mean(np.array(estimates), np.array(weights, float),
+                                          cfg.outlier_mad_factor, cfg.outlier_floor)
+    return VelocityEstimate(mean, int(keep.sum()), se)
 
 
 def speed_mps(velocity: np.ndarray, frame_rate_hz: float) -> float:
@@ -173,9 +192,13 @@ def speed_mps(velocity: np.ndarray, frame_rate_hz: float) -> float:
     return float(np.linalg.norm(velocity) * frame_rate_hz)
 
 
-def is_dynamic(velocity: np.ndarray, cfg: VelocityConfig) -> bool:
-    """Whether a velocity (m per frame index) exceeds ``cfg.dynamic_speed_threshold`` (m/s)."""
-    return speed_mps(velocity, cfg.frame_rate_hz) > cfg.dynamic_speed_threshold
+def is_dynamic(velocity: np.ndarray, cfg: VelocityConfig, standard_error: float = 0.0) -> bool:
+    """Whether an instance moves: its speed exceeds ``cfg.dynamic_speed_threshold`` (m/s) and its
+    velocity (m per frame index) is more than ``cfg.significance`` standard errors from zero
+    (the pair estimates agree on a motion rather than scatter around none)."""
+    speed = float(np.linalg.norm(velocity))
+    return (speed * cfg.frame_rate_hz > cfg.dynamic_speed_threshold
+            and speed > cfg.significance * standard_error)
 
 
 # --------------------------------------------------------------------------------------------
@@ -407,12 +430,19 @@ def fit_footprint(points: np.ndarray, yaw: float, cameras: np.ndarray,
 # --------------------------------------------------------------------------------------------
 
 def initialise_instance(instance_id: int, clouds: dict[int, np.ndarray],
-                        cameras: dict[int, np.ndarray], cfg: InitConfig) -> InstanceInit | None:
-    """Attributes of one instance from its clouds per frame offset (None if too few points)."""
+                        cameras: dict[int, np.ndarray], cfg: InitConfig,
+                        truncated: set[int] | frozenset[int] = frozenset()) -> InstanceInit | None:
+    """Attributes of one instance from its clouds per frame offset (None if too few points).
+
+    ``truncated`` lists the offsets where the instance's mask is cut by the image border: their
+    clouds show a part of the car that moves with the camera, so they take no part in the
+    velocity estimate (no velocity, hence static, when no other frames remain).
+    """
     if not clouds or max(len(c) for c in clouds.values()) < cfg.min_points_any:
         return None
-    velocity, n_pairs = estimate_velocity(clouds, cfg.velocity)
-    dynamic = is_dynamic(velocity, cfg.velocity)
+    est = estimate_velocity({o: c for o, c in clouds.items() if o not in truncated}, cfg.velocity)
+    velocity, n_pairs = est.velocity, est.n_pairs
+    dynamic = is_dynamic(velocity, cfg.velocity, est.standard_error)
     motion = velocity if dynamic else np.zeros(3)
     ref = reference_offset(clouds, cfg.min_points_location)
     cloud_mean = to_target_time(clouds[ref], ref, motion).mean(axis=0)
@@ -426,16 +456,26 @@ def initialise_instance(instance_id: int, clouds: dict[int, np.ndarray],
         centre, size = cloud_mean.copy(), None
     return InstanceInit(instance_id=instance_id, centre=centre, yaw=yaw, velocity=velocity,
                         dynamic=dynamic, size=size, n_points=len(clouds[ref]), clouds=clouds,
-                        reference_offset=ref, cloud_mean=cloud_mean, n_velocity_pairs=n_pairs)
+                        reference_offset=ref, cloud_mean=cloud_mean, n_velocity_pairs=n_pairs,
+                        truncated=tuple(sorted(truncated)))
+
+
+def touches_border(mask: np.ndarray, margin: int) -> bool:
+    """Whether a mask has a pixel within ``margin`` px of the image border (truncated object)."""
+    m = max(int(margin), 1)
+    return bool(mask[:m].any() or mask[-m:].any() or mask[:, :m].any() or mask[:, -m:].any())
 
 
 def collect_clouds(frames: list[StereoFrame], cfg: InitConfig
-                   ) -> tuple[dict[int, dict[int, np.ndarray]], dict[int, np.ndarray]]:
-    """Clouds per instance id and frame offset, and camera centres per frame offset."""
+                   ) -> tuple[dict[int, dict[int, np.ndarray]], dict[int, np.ndarray],
+                              dict[int, set[int]]]:
+    """Clouds per instance id and frame offset, camera centres per frame offset, and per
+    instance the offsets where its mask is cut by the image border (:func:`touches_border`)."""
     offsets = [f.frame_offset for f in frames]
     if len(set(offsets)) != len(offsets):
         raise ValueError(f"frame offsets must be unique, got {sorted(offsets)}")
     clouds: dict[int, dict[int, np.ndarray]] = {}
+    truncated: dict[int, set[int]] = {}
     cameras = {}
     for frame in frames:
         cameras[frame.frame_offset] = frame.camera_centre
@@ -443,7 +483,9 @@ def collect_clouds(frames: list[StereoFrame], cfg: InitConfig
             continue
         for iid, cloud in frame_clouds(frame, frame_depth(frame, cfg), cfg).items():
             clouds.setdefault(iid, {})[frame.frame_offset] = cloud
-    return clouds, cameras
+            if touches_border(frame.masks[iid], cfg.velocity.border_margin_px):
+                truncated.setdefault(iid, set()).add(frame.frame_offset)
+    return clouds, cameras, truncated
 
 
 def initialise(frames: list[StereoFrame], cfg: InitConfig | None = None) -> dict[int, InstanceInit]:
@@ -457,10 +499,10 @@ def initialise(frames: list[StereoFrame], cfg: InitConfig | None = None) -> dict
     cfg = cfg or InitConfig()
     if cfg.depth_mode == "none":
         return {}
-    clouds, cameras = collect_clouds(frames, cfg)
+    clouds, cameras, truncated = collect_clouds(frames, cfg)
     out = {}
     for iid in sorted(clouds):
-        init = initialise_instance(iid, clouds[iid], cameras, cfg)
+        init = initialise_instance(iid, clouds[iid], cameras, cfg, truncated.get(iid, set()))
         if init is not None:
             out[iid] = init
     return out

@@ -89,6 +89,10 @@ class VelocityConfig:
 
     #: Frames whose cloud has more than this many points take part in the velocity estimate.
     min_points: int = 100
+    #: Frames where an instance's mask comes within this many pixels of the image border are
+    #: truncated: the visible part of the car slides with the camera (a parked car beside the
+    #: road looks as fast as the ego car), so they are left out of the velocity estimate.
+    border_margin_px: int = 2
     #: Frame pairs further apart than this (frame indices) are skipped.
     max_gap: int = 15
     #: ICP iterations at most.
@@ -129,6 +133,11 @@ class VelocityConfig:
     #: apparent speeds of a few tenths of m/s. 1.5 m/s (5.4 km/h, walking pace) sits above that
     #: noise and below the speed of cars in traffic; see ``benchmarks/init_accuracy.py``.
     dynamic_speed_threshold: float = 1.5
+    #: ... and the velocity must be this many standard errors (spread of the pair estimates,
+    #: :func:`vsrd_mi.init.attributes.robust_weighted_mean`) away from zero: at long range a
+    #: parked car's pair estimates scatter by metres per second around zero (per-frame depth
+    #: biases of stereo), a moving car's agree. Two is the usual ~95 % one-sided level.
+    significance: float = 2.0
 
 
 @dataclass
