@@ -161,10 +161,21 @@ def run(seeds: list[int], frames: int, data_dir: Path, targets_per_seq: int, arg
     overall["seconds_per_target_median"] = float(np.median(seconds)) if seconds else None
     passed = {k: (overall[k] is not None and (overall[k] >= v if k == "dynamic_accuracy" else overall[k] <= v))
               for k, v in TARGETS.items()}
-    return {"seeds": seeds, "frames": frames, "targets_per_seq": targets_per_seq,
+    return {"git_commit": _git_commit(), "seeds": seeds, "frames": frames,
+            "targets_per_seq": targets_per_seq,
             "max_depth": args.max_depth, "unoccluded_iou": args.unoccluded_iou,
             "init_config": asdict(cfg), "targets": TARGETS, "passed": passed,
             "overall": overall, "per_seed": per_seed, "records": records}
+
+
+def _git_commit() -> str | None:
+    """HEAD of the repository holding this script (None outside a git checkout)."""
+    import subprocess
+    try:
+        return subprocess.run(["git", "rev-parse", "HEAD"], cwd=Path(__file__).parent, check=True,
+                              capture_output=True, text=True).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return None
 
 
 def build_parser() -> argparse.ArgumentParser:
