@@ -59,12 +59,21 @@ class CarModel:
         return 0.5 * (self.box_min + self.box_max)
 
 
+#: Cabin outline per body type: ranges of the insets (metres) of the cabin's bottom rear, bottom
+#: front, top rear and top front edges from the rear / front ends of the car.
+CabinInsets = tuple[tuple[float, float], tuple[float, float], tuple[float, float], tuple[float, float]]
+
+#: Cabin faces whose normal points up more steeply than this are roof (painted), not glass.
+ROOF_MIN_NORMAL_Z = 0.9
+
+
 @dataclass(frozen=True)
 class ProceduralCarConfig:
     """Ranges of the procedural car shapes (metres); one row per body type.
 
-    Each type is ``(length range, width range, height range)``; the types cover hatchbacks,
-    sedans, SUVs and vans up to 5.2 m x 2.3 m x 2.2 m.
+    Each type is ``(name, length range, width range, height range)``; the types cover hatchbacks,
+    sedans, SUVs and vans up to 5.2 m x 2.3 m x 2.2 m. ``cabins`` holds each type's
+    :data:`CabinInsets` in the same order.
     """
 
     types: tuple[tuple[str, tuple[float, float], tuple[float, float], tuple[float, float]], ...] = (
@@ -73,15 +82,27 @@ class ProceduralCarConfig:
         ("suv", (4.3, 5.0), (1.80, 2.05), (1.60, 1.85)),
         ("van", (4.6, 5.2), (1.90, 2.30), (1.90, 2.20)),
     )
+    cabins: tuple[CabinInsets, ...] = (
+        ((0.05, 0.15), (1.0, 1.25), (0.25, 0.4), (1.8, 2.1)),
+        ((0.85, 1.05), (1.2, 1.45), (1.3, 1.5), (2.0, 2.3)),
+        ((0.05, 0.15), (1.05, 1.25), (0.15, 0.3), (1.65, 1.9)),
+        ((0.02, 0.06), (0.45, 0.7), (0.03, 0.08), (1.0, 1.3)),
+    )
+    #: The roof is at least this long, metres.
+    min_roof_length: float = 0.5
     #: Wheel radius range.
     wheel_radius: tuple[float, float] = (0.29, 0.38)
-    #: Tyre width.
+    #: Tyre width, and the gap between the tyre's outer face and the body side.
     wheel_width: float = 0.21
+    wheel_inset: float = 0.01
+    #: Distance from a wheel's edge to the car's end (range), metres.
+    wheel_overhang: tuple[float, float] = (0.45, 0.75)
     #: Distance between the body bottom and the ground, as a fraction of the wheel radius.
     clearance_fraction: tuple[float, float] = (0.45, 0.7)
     #: Height of the belt line (top of the lower body) as a fraction of the car height.
     belt_fraction: tuple[float, float] = (0.50, 0.60)
-    #: Roof width as a fraction of the body width.
+    #: Cabin bottom and roof widths as fractions of the body width.
+    cabin_width_fraction: float = 0.97
     roof_width_fraction: tuple[float, float] = (0.74, 0.86)
     #: Number of facets around a wheel.
     wheel_sections: int = 14
@@ -89,27 +110,6 @@ class ProceduralCarConfig:
 
 def _hull(points: np.ndarray) -> trimesh.Trimesh:
     return trimesh.convex.convex_hull(points)
-
-
-def _cabin_profile(kind: str, length: float, rng: np.random.Generator) -> tuple[float, ...]:
-    """Cabin bottom (x0, x1) and top (x0, x1) along the car's length, rear at ``-length/2``."""
-    half = 0.5 * length
-    j = lambda a, b: float(rng.uniform(a, b))  # noqa: E731  (local jitter helper)
-    if kind == "hatchback":
-        b0, b1 = -half + j(0.05, 0.15), half - j(1.0, 1.25)
-        t0, t1 = -half + j(0.25, 0.4), half - j(1.8, 2.1)
-    elif kind == "sedan":
-        b0, b1 = -half + j(0.85, 1.05), half - j(1.2, 1.45)
-        t0, t1 = -half + j(1.3, 1.5), half - j(2.0, 2.3)
-    elif kind == "suv":
-        b0, b1 = -half + j(0.05, 0.15), half - j(1.05, 1.25)
-        t0, t1 = -half + j(0.15, 0.3), half - j(1.65, 1.9)
-    elif kind == "van":
-        b0, b1 = -half + j(0.02, 0.06), half - j(0.45, 0.7)
-        t0, t1 = -half + j(0.03, 0.08), half - j(1.0, 1.3)
-    else:
-        raise ValueError(f"unknown body type {kind!r}")
-    return b0, b1, t0, max(t1, t0 + 0.5)
 
 
 def procedural_car(rng: np.random.Generator, config: ProceduralCarConfig = ProceduralCarConfig(),
@@ -133,22 +133,26 @@ def procedural_car(rng: np.random.Generator, config: ProceduralCarConfig = Proce
                                         [length / 2, width / 2, belt]])
     parts.append((body, BODY))
 
-    b0, b1, t0, t1 = _cabin_profile(name, length, rng)
-    cw = 0.97 * width
+    half = 0.5 * length
+    rear_b, front_b, rear_t, front_t = (float(rng.uniform(*r)) for r in config.cabins[idx])
+    b0, b1, t0 = -half + rear_b, half - front_b, -half + rear_t
+    t1 = max(half - front_t, t0 + config.min_roof_length)
+    cw = config.cabin_width_fraction * width
     cabin_pts = np.array([[x, sy * w / 2, z] for (x0, x1, w, z) in ((b0, b1, cw, belt),
                                                                     (t0, t1, roof_w, height))
                           for x in (x0, x1) for sy in (-1, 1)])
     cabin = _hull(cabin_pts)
     parts.append((cabin, GLASS))  # the roof is re-labelled BODY below
 
-    overhang = radius + float(rng.uniform(0.45, 0.75))
+    overhang = radius + float(rng.uniform(*config.wheel_overhang))
     for sx in (-1.0, 1.0):
         for sy in (-1.0, 1.0):
             wheel = trimesh.creation.cylinder(radius=radius, height=config.wheel_width,
                                               sections=config.wheel_sections)
             wheel.apply_transform(trimesh.transformations.rotation_matrix(np.pi / 2, [1, 0, 0]))
             wheel.apply_translation([sx * (length / 2 - overhang),
-                                     sy * (width / 2 - config.wheel_width / 2 - 0.01), radius])
+                                     sy * (width / 2 - config.wheel_width / 2 - config.wheel_inset),
+                                     radius])
             parts.append((wheel, TYRE))
 
     verts, faces, mats = [], [], []
@@ -158,7 +162,7 @@ def procedural_car(rng: np.random.Generator, config: ProceduralCarConfig = Proce
         f = np.asarray(mesh.faces, dtype=np.int64)
         m = np.full(len(f), mat, dtype=np.int8)
         if mesh is cabin:  # roof: faces facing up are painted like the body
-            m[np.asarray(mesh.face_normals)[:, 2] > 0.9] = BODY
+            m[np.asarray(mesh.face_normals)[:, 2] > ROOF_MIN_NORMAL_Z] = BODY
         verts.append(v)
         faces.append(f + offset)
         mats.append(m)

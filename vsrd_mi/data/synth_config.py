@@ -74,8 +74,6 @@ class RoadConfig:
     parking_width: float = 2.4
     kerb_height: float = 0.15
     sidewalk_width: float = 3.0
-    #: Flat terrain between the sidewalk and this lateral distance.
-    terrain_extent: float = 45.0
     #: Largest curvature of the centre line (1/m); curvature varies sinusoidally along the road.
     max_curvature: float = 0.0008
     #: Range of the wavelength of the curvature variation, metres.
@@ -90,10 +88,14 @@ class RoadConfig:
     building_length: tuple[float, float] = (8.0, 30.0)
     building_height: tuple[float, float] = (6.0, 20.0)
     building_depth: float = 12.0
+    #: Facade colours: a grey level in this range plus a per-channel tint of up to +-tint.
+    building_grey: tuple[float, float] = (120.0, 215.0)
+    building_tint: float = 25.0
     #: Probability of an open gap after a building, and the gap's length range.
     building_gap_prob: float = 0.35
     building_gap: tuple[float, float] = (3.0, 10.0)
-    #: Lateral offset of the back wall seen through gaps between buildings.
+    #: Lateral offset of the back wall seen through gaps between buildings; flat terrain lies
+    #: between the sidewalks and the back walls.
     back_wall_offset: float = 38.0
 
 
@@ -154,14 +156,24 @@ class TextureConfig:
     dash_length: float = 3.0
     dash_period: float = 9.0
     marking_grey: int = 215
-    #: Kerb stones along the road, and sidewalk / terrain cells, metres.
+    #: Kerb stones along the road (cell, metres) and their grey range.
     kerb_cell: float = 0.5
+    kerb_grey: tuple[int, int] = (150, 205)
+    #: Sidewalk tiles and terrain patches: cell (metres), base colour, brightness factor range.
     sidewalk_cell: float = 0.4
+    sidewalk_rgb: tuple[int, int, int] = (175, 160, 150)
+    sidewalk_modulation: tuple[float, float] = (0.7, 1.2)
     terrain_cell: float = 0.6
-    #: Facade: brick cells (along, up), window grid (along, up) and window size, metres.
+    terrain_rgb: tuple[int, int, int] = (95, 120, 60)
+    terrain_modulation: tuple[float, float] = (0.6, 1.3)
+    #: Facade: brick cells (along, up) and their brightness factor range, window grid (along,
+    #: up), window size (metres) and the brightness factor range of the window glass. Windows
+    #: start on the first floor.
     facade_cell: tuple[float, float] = (0.9, 0.6)
+    facade_modulation: tuple[float, float] = (0.78, 1.18)
     window_grid: tuple[float, float] = (3.2, 3.0)
     window_size: tuple[float, float] = (1.3, 1.5)
+    window_modulation: tuple[float, float] = (0.6, 1.5)
     #: Car paint cells (3D, car frame), metres, and the modulation of the paint brightness.
     car_cell: float = 0.16
     car_modulation: float = 0.35
@@ -173,6 +185,8 @@ class TextureConfig:
         (30, 60, 140), (40, 95, 60), (210, 170, 40), (110, 70, 40), (150, 170, 200))
     glass_rgb: tuple[int, int, int] = (55, 70, 85)
     tyre_rgb: tuple[int, int, int] = (38, 38, 40)
+    #: Relative brightness modulation of car glass and tyres (their cells are the paint cells).
+    detail_modulation: float = 0.8
     #: Sun direction (world, z up; normalised at use) and the ambient / diffuse light shares.
     sun: tuple[float, float, float] = (0.35, 0.25, 0.9)
     ambient: float = 0.55

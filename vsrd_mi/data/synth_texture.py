@@ -51,14 +51,18 @@ def cell_value(salt: int | np.ndarray, coords: list[np.ndarray], sizes: list[flo
     return levels01(hash01(salt, *[np.floor(c / s) for c, s in zip(coords, sizes)]), levels)
 
 
+def lerp(bounds: tuple[float, float], v: np.ndarray) -> np.ndarray:
+    """``bounds[0] + (bounds[1] - bounds[0]) * v``."""
+    return bounds[0] + (bounds[1] - bounds[0]) * v
+
+
 def _grey(v: np.ndarray) -> np.ndarray:
     return np.repeat(v[:, None], 3, axis=1)
 
 
 def road_rgb(s: np.ndarray, n: np.ndarray, lane_width: float, cfg: TextureConfig) -> np.ndarray:
     """Asphalt cells with a dashed centre line and solid lines between lanes and parking strips."""
-    lo, hi = cfg.road_grey
-    grey = lo + (hi - lo) * cell_value(SALT_ROAD, [s, n], list(cfg.road_cell), cfg.levels)
+    grey = lerp(cfg.road_grey, cell_value(SALT_ROAD, [s, n], list(cfg.road_cell), cfg.levels))
     half = 0.5 * cfg.marking_width
     centre = (np.abs(n) < half) & (np.mod(s, cfg.dash_period) < cfg.dash_length)
     edge = np.abs(np.abs(n) - lane_width) < half
@@ -67,17 +71,17 @@ def road_rgb(s: np.ndarray, n: np.ndarray, lane_width: float, cfg: TextureConfig
 
 
 def kerb_rgb(s: np.ndarray, cfg: TextureConfig) -> np.ndarray:
-    return _grey(150.0 + 55.0 * cell_value(SALT_KERB, [s], [cfg.kerb_cell], cfg.levels))
+    return _grey(lerp(cfg.kerb_grey, cell_value(SALT_KERB, [s], [cfg.kerb_cell], cfg.levels)))
 
 
 def sidewalk_rgb(s: np.ndarray, n: np.ndarray, cfg: TextureConfig) -> np.ndarray:
     v = cell_value(SALT_SIDEWALK, [s, n], [cfg.sidewalk_cell] * 2, cfg.levels)
-    return np.array([175.0, 160.0, 150.0]) * (0.7 + 0.5 * v)[:, None]
+    return np.array(cfg.sidewalk_rgb, dtype=np.float64) * lerp(cfg.sidewalk_modulation, v)[:, None]
 
 
 def terrain_rgb(x: np.ndarray, y: np.ndarray, cfg: TextureConfig) -> np.ndarray:
     v = cell_value(SALT_TERRAIN, [x, y], [cfg.terrain_cell] * 2, cfg.levels)
-    return np.array([95.0, 120.0, 60.0]) * (0.6 + 0.7 * v)[:, None]
+    return np.array(cfg.terrain_rgb, dtype=np.float64) * lerp(cfg.terrain_modulation, v)[:, None]
 
 
 def facade_rgb(u: np.ndarray, z: np.ndarray, base_rgb: np.ndarray, salt: np.ndarray,
@@ -89,14 +93,14 @@ def facade_rgb(u: np.ndarray, z: np.ndarray, base_rgb: np.ndarray, salt: np.ndar
     """
     bu, bz = cfg.facade_cell
     v = cell_value(salt, [u, z + 0.5 * bu * np.floor(z / bz)], [bu, bz], cfg.levels)
-    rgb = base_rgb * (0.78 + 0.4 * v)[:, None]
+    rgb = base_rgb * lerp(cfg.facade_modulation, v)[:, None]
     gu, gz = cfg.window_grid
     wu, wz = cfg.window_size
     floor_idx = np.floor(z / gz)
     window = (np.mod(u, gu) < wu) & (np.mod(z, gz) > 0.5 * (gz - wz)) \
         & (np.mod(z, gz) < 0.5 * (gz + wz)) & (floor_idx >= 1)
     shade = cell_value(salt + SALT_WINDOW, [np.floor(u / gu), floor_idx], [1.0, 1.0], cfg.levels)
-    glass = np.array(cfg.glass_rgb, dtype=np.float64) * (0.6 + 0.9 * shade)[:, None]
+    glass = np.array(cfg.glass_rgb, dtype=np.float64) * lerp(cfg.window_modulation, shade)[:, None]
     return np.where(window[:, None], glass, rgb)
 
 
@@ -108,8 +112,9 @@ def car_rgb(local: np.ndarray, material: np.ndarray, paint: np.ndarray, salt: np
     v = cell_value(salt + SALT_CAR_GREY, cells, size, cfg.levels) - 0.5
     w = cell_value(salt + SALT_CAR_ADD, cells, size, cfg.levels) - 0.5
     body = paint * (1.0 + cfg.car_modulation * v)[:, None] + (cfg.car_additive * w)[:, None]
-    glass = np.array(cfg.glass_rgb, dtype=np.float64) * (1.0 + 0.8 * v)[:, None]
-    tyre = np.array(cfg.tyre_rgb, dtype=np.float64) * (1.0 + 0.8 * v)[:, None]
+    detail = (1.0 + cfg.detail_modulation * v)[:, None]
+    glass = np.array(cfg.glass_rgb, dtype=np.float64) * detail
+    tyre = np.array(cfg.tyre_rgb, dtype=np.float64) * detail
     out = np.where((material == GLASS)[:, None], glass, body)
     return np.where((material == TYRE)[:, None], tyre, out) if np.any(material == TYRE) else out
 

@@ -21,8 +21,9 @@ from typing import Sequence
 import numpy as np
 from shapely.geometry import Polygon
 
-from ..geometry.boxes import Box3D
+from ..geometry.boxes import Box3D, yaw_matrix
 from .kitti360 import CAR_LABEL_ID, INSTANCE_FACTOR, car_instance_value, sequence_name
+from .observations import rotation_x
 from .synth_cars import CarModel, bundled_mesh_paths, load_car_mesh, procedural_car, scaled
 from .synth_config import RoadConfig, SynthConfig
 
@@ -45,16 +46,6 @@ WORLD_TO_G = np.array([[1.0, 0, 0, 0], [0, 0, -1.0, 0], [0, 1.0, 0, 0], [0, 0, 0
 def rot_z(a: float) -> np.ndarray:
     c, s = np.cos(a), np.sin(a)
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-
-
-def rot_y(a: float) -> np.ndarray:
-    c, s = np.cos(a), np.sin(a)
-    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
-
-
-def rot_x(a: float) -> np.ndarray:
-    c, s = np.cos(a), np.sin(a)
-    return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
 
 
 def homogeneous(R: np.ndarray, t: Sequence[float] = (0.0, 0.0, 0.0)) -> np.ndarray:
@@ -221,7 +212,8 @@ def build_static(cl: Centreline, road: RoadConfig, rng: np.random.Generator
         parts.add(*_ribbon(cl, s, (side * walk, 0.0), (side * road.back_wall_offset, 0.0)),
                   TERRAIN, SEM_TERRAIN)
         back = Building(int(side), float(s[0]), float(s[-1]), road.back_wall_offset,
-                        float(road.building_height[1]), _building_rgb(rng), int(rng.integers(1 << 30)))
+                        float(road.building_height[1]), _building_rgb(rng, road),
+                        int(rng.integers(1 << 30)))
         parts.add(*_ribbon(cl, s, (side * back.offset, 0.0), (side * back.offset, back.height)),
                   FACADE, SEM_BUILDING, obj=len(buildings))
         buildings.append(back)
@@ -230,7 +222,7 @@ def build_static(cl: Centreline, road: RoadConfig, rng: np.random.Generator
             length = float(rng.uniform(*road.building_length))
             s1 = min(pos + length, float(s[-1]))
             b = Building(int(side), pos, s1, walk + float(rng.uniform(*road.building_setback)),
-                         float(rng.uniform(*road.building_height)), _building_rgb(rng),
+                         float(rng.uniform(*road.building_height)), _building_rgb(rng, road),
                          int(rng.integers(1 << 30)))
             idx = len(buildings)
             buildings.append(b)
@@ -248,9 +240,9 @@ def build_static(cl: Centreline, road: RoadConfig, rng: np.random.Generator
     return parts, buildings
 
 
-def _building_rgb(rng: np.random.Generator) -> tuple[int, int, int]:
-    base = rng.uniform(120, 215)
-    tint = rng.uniform(-25, 25, size=3)
+def _building_rgb(rng: np.random.Generator, road: RoadConfig) -> tuple[int, int, int]:
+    base = rng.uniform(*road.building_grey)
+    tint = rng.uniform(-road.building_tint, road.building_tint, size=3)
     return tuple(int(np.clip(base + t, 0, 255)) for t in tint)
 
 
@@ -393,13 +385,18 @@ def _ego_track(config: SynthConfig, n: int, rng: np.random.Generator
 FLU_TO_FRD = np.diag([1.0, -1.0, -1.0])
 
 
-def _ego_poses(config: SynthConfig, rig: Rig, cl: Centreline, track) -> tuple[list, list]:
+def _ego_poses(config: SynthConfig, rig: Rig, cl: Centreline, track: tuple[np.ndarray, ...]
+               ) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """IMU -> world poses and rectified cam0 -> world per frame; the camera centre sits
+    ``camera_height`` above the lane (with lateral jitter)."""
     s, lateral, dyaw, pitch, roll = track
     lane_n = -0.5 * config.road.lane_width
     rr_inv = np.linalg.inv(homogeneous(rig.r_rect_00))  # R_rect_00 is orthonormal to ~1e-6 only
     poses, cams = [], []
     for k in range(len(s)):
-        R_imu = rot_z(float(cl.heading(s[k])) + dyaw[k]) @ rot_y(pitch[k]) @ rot_x(roll[k]) @ FLU_TO_FRD
+        # vehicle yaw about z, then pitch about y and roll about x, then the IMU's axis flip
+        R_imu = (rot_z(float(cl.heading(s[k])) + dyaw[k]) @ yaw_matrix(pitch[k])
+                 @ rotation_x(roll[k]) @ FLU_TO_FRD)
         cam_xy = cl.at(s[k], lane_n + lateral[k])
         cam_centre = np.array([cam_xy[0], cam_xy[1], config.rig.camera_height])
         pose = homogeneous(R_imu, cam_centre - R_imu @ rig.cam0_to_pose[:3, 3])
@@ -447,7 +444,10 @@ def _paint(rng: np.random.Generator, config: SynthConfig) -> tuple[int, int, int
     return pal[int(rng.integers(len(pal)))]
 
 
-def _place_dynamic(rng, config, cl, ego_s, model, instance_id) -> SynthCar:
+def _place_dynamic(rng: np.random.Generator, config: SynthConfig, cl: Centreline,
+                   ego_s: np.ndarray, model: CarModel, instance_id: int) -> SynthCar:
+    """A car driving straight at constant speed along the chord of its lane (ego lane ahead of
+    the ego, or the oncoming lane passing the ego)."""
     tr, n = config.traffic, len(ego_s)
     v = float(rng.uniform(*tr.speed)) / config.rig.frame_rate
     length = float(model.size[0])
@@ -468,7 +468,9 @@ def _place_dynamic(rng, config, cl, ego_s, model, instance_id) -> SynthCar:
                     _paint(rng, config), int(rng.integers(1 << 30)))
 
 
-def _place_parked(rng, config, cl, ego_s, model, instance_id) -> SynthCar | None:
+def _place_parked(rng: np.random.Generator, config: SynthConfig, cl: Centreline,
+                  ego_s: np.ndarray, model: CarModel, instance_id: int) -> SynthCar | None:
+    """A parked car in a parking strip (None when its rotated footprint does not fit)."""
     tr, road = config.traffic, config.road
     side = 1.0 if rng.uniform() < 0.5 else -1.0
     s = float(rng.uniform(ego_s[0] + tr.parked_range[0], ego_s[-1] + tr.parked_range[1]))
