@@ -264,10 +264,15 @@ def test_sgbm_finds_true_disparities(synth):
     K = seq.calibration.K
     true = K[0, 0] * seq.calibration.baseline / left.depth
     imap = seq.instance_map(0)
+    # where SGBM can answer: 2-96 px of disparity (3.4-164 m), not in the left band of
+    # numDisparities columns that it leaves empty
+    measurable = (true > 2) & (true < 96)
+    measurable[:, :128] = False
+    fractions = {}
     for name, region in (("cars", imap >= 26000), ("road", imap == 7), ("buildings", imap == 11)):
-        region = region & (true > 2) & (true < 120)
         good = (np.abs(disp - true) < 1.0) & (disp > 0)
-        assert good[region].mean() >= 0.75, name
+        fractions[name] = good[region & measurable].mean()
+    assert min(fractions.values()) >= 0.8, fractions
 
 
 # --------------------------------------------------------------------------------------------
