@@ -22,7 +22,7 @@ from .config import FootprintConfig, InitConfig, OrientationConfig, VelocityConf
 from .depth import depth_to_disparity, make_depth_source
 from .frames import StereoFrame
 from .icp import register_translation
-from .pointcloud import instance_cloud, subsample, warp_error
+from .pointcloud import instance_cloud, warp_error
 
 #: Index of the vertical (gravity) axis of the optimisation frame.
 _UP_AXIS = 1
