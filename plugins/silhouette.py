@@ -19,8 +19,8 @@ r"""Instance-aware NeuS silhouette integrator (``vsrd_silhouette``).
      (Default: 10, 0.1)
  * - band_samples, max_bands, reach
    - |int|, |int|, |float|
-   - Adaptive sampling: ``K`` samples per band, at most ``B`` bands per ray, band half-width and
-     culling margin ``reach / s``. (Default: 16, 4, 8)
+   - Adaptive sampling: ``K`` samples per band, at most ``B`` bands per ray (0: no limit), band
+     half-width and culling margin ``reach / s``. (Default: 16, 0, 8)
  * - coarse_samples, fine_samples
    - |int|
    - Dense sampling: stratified coarse and importance fine sample counts. (Default: 100, 100)
@@ -105,7 +105,7 @@ class SamplingConfig:
 
     sampling: str = "adaptive"
     band_samples: int = 16
-    max_bands: int = 4
+    max_bands: int = 0  # 0: every instance a ray meets gets a band
     reach: float = 8.0
     golden_iterations: int = 24
     coarse_samples: int = 100
@@ -129,7 +129,7 @@ class SamplingConfig:
         )
         if cfg.sampling not in ("adaptive", "dense"):
             raise ValueError(f"vsrd_silhouette: sampling must be 'adaptive' or 'dense', got {cfg.sampling!r}")
-        if cfg.band_samples < 2 or cfg.max_bands < 1 or cfg.coarse_samples < 2 or cfg.fine_samples < 1:
+        if cfg.band_samples < 2 or cfg.max_bands < 0 or cfg.coarse_samples < 2 or cfg.fine_samples < 1:
             raise ValueError("vsrd_silhouette: sample counts too small")
         if not (0.0 <= cfg.near < cfg.far):
             raise ValueError("vsrd_silhouette: need 0 <= near < far")
@@ -315,7 +315,7 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         """Detached per-ray band search.
 
         Returns ``(ray_idx, count, slots)``: indices of rays meeting at least one enlarged box,
-        their number of bands, and per slot ``(entry, lo, hi, extra)`` arrays (slots sorted by
+        their number of bands, and per slot ``(entry, lo, mid, hi, extra)`` arrays (slots sorted by
         band centre; a ray's valid slots come first).
         """
         cfg = self.cfg
@@ -394,7 +394,8 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
             keys = [dr.select(act[k], centre[k], big) for k in range(n_inst)]
             count = mi.UInt32(0)
             slots = []
-            for _ in range(min(cfg.max_bands, n_inst)):
+            n_slots = n_inst if cfg.max_bands <= 0 else min(cfg.max_bands, n_inst)
+            for _ in range(n_slots):
                 best = mi.Float(big)
                 kb = mi.UInt32(n_inst)
                 for k in range(n_inst):
@@ -411,16 +412,35 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
                                      zip((entry[k], exit_[k], tstar[k], centre[k]), (e0, e1, ts, c))]
                     hb = dr.select(is_k, hit[k], hb)
                     keys[k] = dr.select(is_k, big, keys[k])
-                lo = dr.maximum(e0, c - w)
-                hi = dr.maximum(dr.select(hb, dr.minimum(c + w, dr.maximum(ts, c)), c), lo)
-                extra = dr.maximum(dr.select(hb, ts, dr.minimum(c + w, e1)), hi)
-                slots.append(tuple(dr.select(valid, v, cfg.far) for v in (e0, lo, hi, extra)))
+                # two-sided band around c, covering the descent in f from the enlarged box's
+                # entry (f >= w there) to c: hits then run to c + w and the deepest point,
+                # misses to the enlarged box's exit (f >= w again). Uniform in t on a side, which
+                # is close to uniform in f for a box; grazing rays get long but complete bands.
+                lo = e0
+                mid = dr.maximum(c, lo)
+                hi = dr.maximum(dr.select(hb, dr.minimum(c + w, dr.maximum(ts, c)), e1), mid)
+                extra = dr.maximum(dr.select(hb, ts, e1), hi)
+                slots.append(tuple(dr.select(valid, v, cfg.far) for v in (e0, lo, mid, hi, extra)))
             dr.eval(count, slots)
         return ray_idx, count, slots
 
-    def _band_sample(self, lo, hi, i):
-        """``i``-th (1..K) interior sample of a band; the one formula used for values and ranks."""
-        return lo + (hi - lo) * (mi.Float(i) * (1.0 / self.cfg.band_samples))
+    def _halves(self) -> tuple[int, int]:
+        k1 = self.cfg.band_samples // 2
+        return k1, self.cfg.band_samples - k1
+
+    @staticmethod
+    def _sub_sample(a, b, i, k: int):
+        """``i``-th (1..k) sample of the sub-band ``(a, b]``; the one formula for values and ranks."""
+        return a + (b - a) * (mi.Float(i) * (1.0 / k))
+
+    def _count_before(self, a, b, k: int, before):
+        """Number of samples ``i = 1..k`` of sub-band ``(a, b]`` for which ``before`` holds."""
+        span = b - a
+        x = dr.select(span > 0, (self._t_probe - a) / dr.maximum(span, 1e-30) * k, 0.0)
+        c = mi.UInt32(dr.clip(dr.floor(x), 0.0, float(k)))
+        c = dr.select((c < k) & before(self._sub_sample(a, b, c + 1, k)), c + 1, c)
+        c = dr.select((c > 0) & ~before(self._sub_sample(a, b, c, k)), c - 1, c)
+        return dr.select(span > 0, c, dr.select(before(a), k, 0))
 
     def _adaptive_groups(self, dec, o, d, time):
         """Sample positions for the adaptive strategy, one group per band count.
@@ -448,29 +468,29 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
                 j = q % per
                 rows = dr.gather(mi.UInt32, sub, r)
                 sl = [tuple(dr.gather(mi.Float, v, rows) for v in slots[b]) for b in range(g)]
-                # this lane's own sample value
+                k1, k2 = self._halves()
+                # this lane's own sample value: entry, K/2 samples in (lo, mid], K/2 in (mid, hi], extra
                 t = mi.Float(0.0)
                 for b in range(g):
-                    e0, lo, hi, ex = sl[b]
-                    jm = dr.minimum(dr.maximum(j, 1), kk)
-                    tb = dr.select(j == 0, e0, dr.select(j == per - 1, ex, self._band_sample(lo, hi, jm)))
+                    e0, lo, mid, hi, ex = sl[b]
+                    ja = dr.minimum(dr.maximum(j, 1), k1)
+                    jb = dr.minimum(dr.maximum(j, k1 + 1), kk) - k1
+                    tb = dr.select(j <= k1, self._sub_sample(lo, mid, ja, k1),
+                                   self._sub_sample(mid, hi, jb, k2))
+                    tb = dr.select(j == 0, e0, dr.select(j == per - 1, ex, tb))
                     t = dr.select(band == b, tb, t)
+                self._t_probe = t
                 # rank = own index + samples of other bands that come before (ties by band index)
                 rank = mi.UInt32(j)
                 for b in range(g):
-                    e0, lo, hi, ex = sl[b]
+                    e0, lo, mid, hi, ex = sl[b]
                     incl = mi.UInt32(b) < band
 
                     def before(x):
                         return (x < t) | (incl & (x == t))
 
-                    span = hi - lo
-                    x = dr.select(span > 0, (t - lo) / dr.maximum(span, 1e-30) * kk, 0.0)
-                    c = mi.UInt32(dr.clip(dr.floor(x), 0.0, float(kk)))
-                    c = dr.select((c < kk) & before(self._band_sample(lo, hi, c + 1)), c + 1, c)
-                    c = dr.select((c > 0) & ~before(self._band_sample(lo, hi, c)), c - 1, c)
-                    c = dr.select(span > 0, c, dr.select(before(lo), kk, 0))
-                    cnt = c + dr.select(before(e0), 1, 0) + dr.select(before(ex), 1, 0)
+                    cnt = (self._count_before(lo, mid, k1, before) + self._count_before(mid, hi, k2, before)
+                           + dr.select(before(e0), 1, 0) + dr.select(before(ex), 1, 0))
                     rank += dr.select(band == b, 0, cnt)
                 ts = dr.zeros(mi.Float, na * m)
                 dr.scatter(ts, t, r * m + rank)
