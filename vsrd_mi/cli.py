@@ -17,6 +17,7 @@ SUBCOMMAND_MODULES: tuple[str, ...] = (
     "vsrd_mi.data.synth_cli",
     "vsrd_mi.init.cli",
     "vsrd_mi.evaluate.cli",
+    "vsrd_mi.batch.cli",
 )
 
 
