@@ -1,10 +1,430 @@
-"""Work in progress (being written in this session)."""
+r"""Sphere-traced instance id, depth and normal of the instance SDF scene (``sdf_tracer``).
+
+.. pluginparameters::
+
+ * - num_instances, centres, sizes, yaws, velocities, dynamic
+   - |int|, |string|
+   - The boxes (see :func:`vsrd_plugins.sdf.instance_properties`). Ray time is the frame offset
+     used to move dynamic boxes: ``centre(t) = centre + dynamic * velocity * t``.
+ * - residual
+   - |bool|
+   - Add the hypernetwork residual distance field to every box SDF. (Default: false)
+ * - max_iterations
+   - |int|
+   - Sphere-tracing iterations per ray; rays still marching after them are background.
+     (Default: 256)
+ * - epsilon
+   - |float|
+   - Hit tolerance (m): a ray whose scene SDF drops below it has hit. (Default: 1e-5)
+ * - near, far
+   - |float|
+   - Tracing range along each (normalised) ray direction. (Default: 0, 200)
+ * - start_margin, max_step_ratio, overshoot
+   - |float|
+   - Marching controls, see below. (Default: 0.05, 128, 1e-3)
+ * - refine_iterations, depth_tolerance
+   - |int|, |float|
+   - Root refinement: at most this many Illinois steps, until the bracket is narrower than
+     ``depth_tolerance`` (m). (Default: 64, 1e-6)
+ * - normal_step
+   - |float|
+   - Central finite-difference step (m) of the normals when the residual is on. (Default: 1e-3)
+
+Every box parameter (``tracer.box_dims``, ...) and the residual field's weights
+(``tracer.rdf_*``) appear in ``mi.traverse(scene)`` when the integrator has ``id="tracer"``;
+they are shared in form with ``vsrd_silhouette`` so an optimised parameter set can be copied
+over. Nothing here is differentiable: the tracer is for inspection (instance maps, depth,
+normals), not for optimisation.
+
+Algorithm
+---------
+
+The scene SDF is ``F(p) = min_n F_n(p)`` at the ray's time (:mod:`vsrd_plugins.sdf`). Per ray:
+
+1. *Start.* A slab test against every instance's box enlarged by ``start_margin`` plus the
+   residual's reach (:attr:`InstanceField.residual_reach`) gives intervals ``[a_n, b_n]``; the
+   ray starts at ``min_n a_n`` (outside every surface); a ray that meets no enlarged box is
+   background at once.
+2. *March* (a Python-level wavefront loop; the residual MLP runs in Dr.Jit tensor mode, which
+   cannot run inside ``dr.while_loop``). Each iteration evaluates ``f = F(o + t d)`` on the
+   rays still marching and compacts the others away (``dr.compress``):
+
+   * ``f < 0``: the step crossed the surface; ``[t_prev, t]`` brackets it;
+   * ``0 <= f < epsilon``: hit at ``t`` (no bracket: a ray passing within ``epsilon`` of a surface);
+   * otherwise step by ``max(f, min(s (1 + overshoot) + epsilon, max_step_ratio f))`` where
+     ``s = f (t - t_prev) / (f_prev - f)`` is the secant estimate of the distance to the zero
+     from the last two samples. ``f`` alone is the classic sphere-tracing step, which needs
+     ``~log(f/epsilon) / sin(theta)`` iterations for a ray at angle ``theta`` to a face; the
+     secant reaches a planar face in one step and the small overshoot makes it land just behind
+     the face, i.e. produces a bracket. On a convex SDF (a single box) the secant step never
+     passes the zero by more than the overshoot; ``max_step_ratio`` bounds it where the minimum
+     over instances switches between samples;
+   * a step that leaves every enlarged box jumps to the next enlarged-box entry along the ray,
+     or ends the ray as background when there is none or it passes ``far``.
+3. *Refine.* Bracketed hits are refined by the Illinois variant of regula falsi until the
+   bracket is narrower than ``depth_tolerance``; the depth is the final secant root.
+4. *Shade.* The hit instance is ``argmin_n F_n`` at the hit; its normal is the box normal
+   (:func:`box_normal_local`) for boxes, or central finite differences of ``F_n`` when the
+   residual is on.
+
+Box SDFs are evaluated in double precision: a single-precision point 80 m away carries
+``~5e-6`` m of rounding, which a ray at grazing angle ``theta`` turns into ``5e-6 / sin(theta)``
+of depth error. (Box centres at the ray time are computed by :meth:`InstanceField.view` in
+single precision; the residual MLP runs in single precision.)
+
+For ``F = B + R`` the march assumes the residual keeps ``F`` 1-Lipschitz along rays; if it does
+not, a step may end inside the surface, which step 2 detects as a bracket.
+
+Output (:meth:`SDFTracerIntegrator.trace_rays`): ``hit`` (Bool), ``instance`` (Int, -1 for
+background), ``t`` (distance along the normalised direction, 0 for background), ``depth``
+(camera z of the hit when a sensor is given, else ``t``), ``normal`` (unit, scene frame, 0 for
+background). :meth:`sample` (``mi.render``) returns the instance colour
+(:func:`vsrd_plugins.silhouette.instance_colours`) shaded by ``|n . d|`` on black and the AOVs
+``instance, depth, nx, ny, nz`` (render with ``spp=1`` and a ``box`` filter so that the AOVs are
+not averaged across pixels).
+
+Usage
+-----
+
+.. code-block:: python
+
+    import vsrd_mi, mitsuba as mi
+    from vsrd_plugins.sdf import instance_properties
+    scene = mi.load_dict({'type': 'scene',
+        'sensor': {'type': 'perspective', 'film': {'type': 'hdrfilm', 'rfilter': {'type': 'box'}}},
+        'integrator': {'type': 'sdf_tracer', 'id': 'tracer',
+                       **instance_properties(centres, sizes, yaws)}})
+    image = mi.render(scene, spp=1)           # RGB + instance, depth, nx, ny, nz
+    out = scene.integrator().trace_rays(origins, directions, times)
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import drjit as dr
 import mitsuba as mi
 
+from .sdf import BoxView, DecodedBoxes, InstanceField, box_normal_local, box_sdf_local, ray_box_interval
+from .silhouette import instance_colours
 
-class _WIP(mi.ad.integrators.common.ADIntegrator):
-    def sample(self, mode, scene, sampler, ray, δL=None, state_in=None, active=True, **kw):
-        raise NotImplementedError("integrator under construction")
+INF = float("inf")
 
 
-VSRDSilhouetteIntegrator = SDFTracerIntegrator = _WIP
+@dataclass(frozen=True)
+class TracerConfig:
+    """Settings of :class:`SDFTracerIntegrator` (see the plugin table)."""
+
+    max_iterations: int = 256
+    epsilon: float = 1e-5  # m, hit tolerance of the march
+    near: float = 0.0
+    far: float = 200.0  # beyond the farthest box-centre range (110 m) plus a vehicle
+    start_margin: float = 0.05  # m, enlargement of the start boxes (start strictly outside)
+    max_step_ratio: float = 128.0  # a secant step is at most this many times the SDF value
+    overshoot: float = 1e-3  # relative overshoot of the secant step (to land behind a face)
+    refine_iterations: int = 64
+    depth_tolerance: float = 1e-6  # m, final bracket width
+    normal_step: float = 1e-3  # m, finite-difference step of residual normals
+
+    @staticmethod
+    def from_props(props: mi.Properties) -> "TracerConfig":
+        d = TracerConfig()
+        kw = {}
+        for name, typ in (("max_iterations", int), ("epsilon", float), ("near", float),
+                          ("far", float), ("start_margin", float), ("max_step_ratio", float),
+                          ("overshoot", float), ("refine_iterations", int),
+                          ("depth_tolerance", float), ("normal_step", float)):
+            kw[name] = typ(props.get(name, getattr(d, name)))
+        cfg = TracerConfig(**kw)
+        if cfg.max_iterations < 1 or cfg.refine_iterations < 0:
+            raise ValueError("sdf_tracer: max_iterations must be >= 1 and refine_iterations >= 0")
+        if not (cfg.epsilon > 0 and cfg.depth_tolerance > 0 and cfg.normal_step > 0
+                and cfg.start_margin >= 0 and cfg.overshoot >= 0 and cfg.max_step_ratio >= 1):
+            raise ValueError("sdf_tracer: epsilon, depth_tolerance, normal_step must be > 0, "
+                             "start_margin, overshoot >= 0 and max_step_ratio >= 1")
+        if not (0.0 <= cfg.near < cfg.far):
+            raise ValueError("sdf_tracer: need 0 <= near < far")
+        return cfg
+
+
+def _to_local64(bv: BoxView, p: mi.Point3d) -> mi.Vector3d:
+    """Box-local coordinates ``R_y^T (p - centre)`` in double precision.
+
+    Same transform as :meth:`BoxView.to_local`, which rounds its result to single precision.
+    """
+    c, s = mi.Float64(bv.cos), mi.Float64(bv.sin)
+    v = p - mi.Point3d(bv.centre)
+    return mi.Vector3d(c * v.x - s * v.z, v.y, s * v.x + c * v.z)
+
+
+class SDFTracerIntegrator(mi.ad.integrators.common.ADIntegrator):
+    __doc__ = __doc__
+
+    def __init__(self, props: mi.Properties):
+        super().__init__(props)
+        self.field = InstanceField(props)
+        self.cfg = TracerConfig.from_props(props)
+        self._sensor: mi.Sensor | None = None
+        #: Counters of the last :meth:`trace_rays` call (for benchmarks and tests).
+        self.last_stats: dict[str, int] = {}
+
+    # -- Mitsuba plumbing ----------------------------------------------------------------------
+    def traverse(self, cb: mi.TraversalCallback) -> None:
+        self.field.traverse(cb)
+
+    def parameters_changed(self, keys: list[str]) -> None:
+        """Nothing is cached: parameters are decoded at every call."""
+
+    def aov_names(self) -> list[str]:
+        return ["instance", "depth", "nx", "ny", "nz"]
+
+    def to_string(self) -> str:
+        return (f"SDFTracerIntegrator[instances={self.field.n}, residual={self.field.use_residual}, "
+                f"max_iterations={self.cfg.max_iterations}, epsilon={self.cfg.epsilon}]")
+
+    def render(self, scene: mi.Scene, sensor=0, seed=0, spp: int = 0, develop: bool = True,
+               evaluate: bool = True) -> mi.TensorXf:
+        """``mi.render`` entry point; remembers the sensor so :meth:`sample` can report camera z."""
+        self._sensor = scene.sensors()[sensor] if isinstance(sensor, int) else sensor
+        try:
+            return super().render(scene, sensor, seed, spp, develop, evaluate)
+        finally:
+            self._sensor = None
+
+    def sample(self, mode, scene, sampler, ray, δL=None, state_in=None, active=True, **kwargs):
+        out = self.trace_rays(mi.Point3f(ray.o), mi.Vector3f(ray.d), mi.Float(ray.time), self._sensor)
+        n_rays = dr.width(out["t"])
+        d = dr.normalize(mi.Vector3f(ray.d))
+        shade = dr.abs(dr.dot(out["normal"], d))
+        rgb = mi.Color3f(0.0)
+        for k, c in enumerate(instance_colours(self.field.n)):
+            rgb = dr.select(out["instance"] == k, mi.Color3f(*c) * shade, rgb)
+        n = out["normal"]
+        aovs = [mi.Float(out["instance"]), out["depth"], n.x, n.y, n.z]
+        aovs = [a if dr.width(a) == n_rays else dr.full(mi.Float, a[0], n_rays) for a in aovs]
+        return mi.Spectrum(rgb), mi.Bool(active), aovs, None
+
+    # -- fields in double precision --------------------------------------------------------------
+    def _instance_sdf(self, dec: DecodedBoxes, weights, k: int, p: mi.Point3d,
+                      time: mi.Float) -> mi.Float64:
+        """``F_k(p)`` (box SDF in double precision, plus the residual where it can act)."""
+        width = dr.width(p.x)
+        bv = self.field.view(dec, k, time, width)
+        pl = _to_local64(bv, p)
+        f = box_sdf_local(pl, mi.Vector3d(bv.half))
+        if weights is not None:
+            f = f + self._residual(weights, k, pl, bv.half)
+        return f
+
+    def _residual(self, weights, k: int, pl: mi.Vector3d, half: mi.Vector3f) -> mi.Float64:
+        """Residual of instance ``k`` inside its box enlarged by the residual's reach, else 0.
+
+        Outside that box ``B_k >= reach >= R_k`` and leaving the residual out keeps ``F_k`` a lower
+        bound there, which is what the march needs (the same culling as
+        :meth:`InstanceField.instance_sdfs`).
+        """
+        width = dr.width(pl.x)
+        reach = self.field.residual_reach
+        inside = dr.all(dr.abs(pl) <= mi.Vector3d(half) + reach)
+        idx = dr.compress(inside)
+        out = dr.zeros(mi.Float64, width)
+        if dr.width(idx) > 0:
+            pk = mi.Vector3f(*[mi.Float(dr.gather(mi.Float64, c, idx)) for c in (pl.x, pl.y, pl.z)])
+            r = self.field.residual.evaluate(weights, k, pk)
+            dr.scatter(out, mi.Float64(r), idx)
+        return out
+
+    def _scene_sdf(self, dec, weights, p: mi.Point3d, time: mi.Float) -> tuple[mi.Float64, mi.Int32]:
+        """Scene SDF ``min_k F_k(p)`` and the index of the minimising instance."""
+        best = dr.full(mi.Float64, INF, dr.width(p.x))
+        arg = dr.full(mi.Int32, -1, dr.width(p.x))
+        for k in range(self.field.n):
+            f = self._instance_sdf(dec, weights, k, p, time)
+            closer = f < best
+            best = dr.select(closer, f, best)
+            arg = dr.select(closer, k, arg)
+        return best, arg
+
+    # -- the tracer ----------------------------------------------------------------------------
+    def trace_rays(self, o: mi.Point3f, d: mi.Vector3f, time: mi.Float,
+                   sensor: mi.Sensor | None = None) -> dict[str, object]:
+        """Trace a batch of rays (any cameras, per-ray frame offset ``time``); no gradients.
+
+        ``d`` need not be normalised; ``t`` is the distance along it. With ``sensor``, ``depth``
+        is the hit's z in that sensor's camera frame (its optical axis from its world transform),
+        otherwise ``depth = t``. Returns ``hit`` (Bool), ``instance`` (Int, -1 for background),
+        ``t``, ``depth`` (Float, 0 for background) and ``normal`` (unit Vector3f, 0 for background).
+        """
+        with dr.suspend_grad():
+            n_rays = max(dr.width(o.x), dr.width(d.x), dr.width(time))
+            o64 = mi.Point3d(mi.Point3d(o) + dr.zeros(mi.Vector3d, n_rays))
+            d64 = mi.Vector3d(dr.normalize(mi.Vector3d(d)) + dr.zeros(mi.Vector3d, n_rays))
+            time = dr.detach(mi.Float(time)) + dr.zeros(mi.Float, n_rays)
+            status, ta, tb, fa, fb = self._march(o64, d64, time)
+            t = self._refine(o64, d64, time, status, ta, tb, fa, fb)
+            hit = status > 0
+            instance, normal = self._shade(o64, d64, time, t, hit)
+            t = dr.select(hit, t, 0.0)
+            if sensor is not None:
+                to_world = sensor.world_transform()
+                axis = mi.Vector3d(dr.normalize(to_world @ mi.Vector3f(0.0, 0.0, 1.0)))
+                origin = mi.Point3d(to_world @ mi.Point3f(0.0, 0.0, 0.0))
+                depth = dr.select(hit, dr.dot(o64 + t * d64 - origin, axis), 0.0)
+            else:
+                depth = t
+            return {"hit": hit, "instance": instance, "t": mi.Float(t), "depth": mi.Float(depth),
+                    "normal": normal}
+
+    def _march(self, o: mi.Point3d, d: mi.Vector3d, time: mi.Float):
+        """Steps 1-2 of the algorithm. Returns full-width ``(status, ta, tb, fa, fb)``.
+
+        ``status``: 0 background, 1 hit at ``ta`` (no bracket), 2 surface bracketed by
+        ``[ta, tb]`` with ``fa > 0 > fb``.
+        """
+        cfg, n_inst = self.cfg, self.field.n
+        n = dr.width(o.x)
+        status = dr.zeros(mi.UInt32, n)
+        ta, tb, fa, fb = (dr.zeros(mi.Float64, n) for _ in range(4))
+        self.last_stats = {"rays": n, "marching": 0, "iterations": 0, "unconverged": 0,
+                           "refine_unconverged": 0}
+        if n_inst == 0:
+            return status, ta, tb, fa, fb
+        dec = self.field.decode()
+        weights = self.field.residual_weights()
+        margin = cfg.start_margin + self.field.residual_reach
+        entry, exit_ = [], []
+        o32, d32 = mi.Point3f(o), mi.Vector3f(d)
+        for k in range(n_inst):
+            bv = self.field.view(dec, k, time, n)
+            a, b = ray_box_interval(bv.to_local(o32), bv.dir_to_local(d32), bv.half + margin)
+            a, b = mi.Float64(dr.maximum(a, cfg.near)), mi.Float64(dr.minimum(b, cfg.far))
+            ok = a <= b
+            entry.append(dr.select(ok, a, INF))
+            exit_.append(dr.select(ok, b, -INF))
+        start = entry[0]
+        for a in entry[1:]:
+            start = dr.minimum(start, a)
+        ridx = dr.compress(start < INF)
+        t = dr.gather(mi.Float64, start, ridx)
+        t_prev = dr.zeros(mi.Float64, dr.width(ridx))
+        f_prev = dr.full(mi.Float64, INF, dr.width(ridx))
+        self.last_stats["marching"] = dr.width(ridx)
+        for it in range(cfg.max_iterations):
+            m = dr.width(ridx)
+            if m == 0:
+                break
+            self.last_stats["iterations"] = it + 1
+            og, dg = dr.gather(mi.Point3d, o, ridx), dr.gather(mi.Vector3d, d, ridx)
+            f, _ = self._scene_sdf(dec, weights, mi.Point3d(og + t * dg), dr.gather(mi.Float, time, ridx))
+            has_prev = f_prev < INF
+            crossed = (f < 0) & has_prev
+            stop = (f < cfg.epsilon) & ~crossed  # converged, or started inside a surface
+            dr.scatter(status, 2, ridx, crossed)
+            dr.scatter(ta, t_prev, ridx, crossed)
+            dr.scatter(fa, f_prev, ridx, crossed)
+            dr.scatter(tb, t, ridx, crossed)
+            dr.scatter(fb, f, ridx, crossed)
+            dr.scatter(status, 1, ridx, stop)
+            dr.scatter(ta, t, ridx, stop)
+            dr.scatter(fa, f, ridx, stop)
+            # next position: sphere step, or the secant step when it is longer
+            use_secant = has_prev & (f_prev > f)
+            secant = dr.select(use_secant, f * (t - t_prev) / dr.maximum(f_prev - f, 1e-300), 0.0)
+            step = dr.maximum(f, dr.minimum(secant * (1.0 + cfg.overshoot) + cfg.epsilon,
+                                            cfg.max_step_ratio * f))
+            t_next = t + step
+            inside = mi.Bool(False)
+            next_entry = dr.full(mi.Float64, INF, m)
+            for k in range(n_inst):
+                a, b = dr.gather(mi.Float64, entry[k], ridx), dr.gather(mi.Float64, exit_[k], ridx)
+                inside |= (a <= t_next) & (t_next <= b)
+                next_entry = dr.minimum(next_entry, dr.select(a > t_next, a, INF))
+            jump = ~inside
+            t_next = dr.select(jump, next_entry, t_next)
+            alive = ~crossed & ~stop & (t_next <= cfg.far)
+            keep = dr.compress(alive)
+            ridx = dr.gather(mi.UInt32, ridx, keep)
+            t_prev = dr.gather(mi.Float64, t, keep)
+            f_prev = dr.gather(mi.Float64, dr.select(jump, INF, f), keep)
+            t = dr.gather(mi.Float64, t_next, keep)
+        self.last_stats["unconverged"] = dr.width(ridx) if self.last_stats["iterations"] == cfg.max_iterations else 0
+        return status, ta, tb, fa, fb
+
+    def _refine(self, o, d, time, status, ta, tb, fa, fb) -> mi.Float64:
+        """Step 3: Illinois regula falsi on bracketed rays. Returns the full-width ``t``."""
+        cfg = self.cfg
+        t_out = mi.Float64(ta)
+        ridx = dr.compress(status == 2)
+        if dr.width(ridx) == 0:
+            return t_out
+        dec = self.field.decode()
+        weights = self.field.residual_weights()
+        a, b = dr.gather(mi.Float64, ta, ridx), dr.gather(mi.Float64, tb, ridx)
+        fa_, fb_ = dr.gather(mi.Float64, fa, ridx), dr.gather(mi.Float64, fb, ridx)
+        side = dr.zeros(mi.Int32, dr.width(ridx))  # last endpoint replaced: -1 a, +1 b, 0 none
+
+        def root(a, b, fa_, fb_):
+            return dr.clip((a * fb_ - b * fa_) / (fb_ - fa_), a, b)
+
+        for _ in range(cfg.refine_iterations):
+            done = (b - a) <= cfg.depth_tolerance
+            dr.scatter(t_out, root(a, b, fa_, fb_), ridx, done)
+            keep = dr.compress(~done)
+            if dr.width(keep) == 0:
+                ridx = keep
+                break
+            ridx, a, b, fa_, fb_, side = (dr.gather(type(x), x, keep)
+                                          for x in (ridx, a, b, fa_, fb_, side))
+            tm = root(a, b, fa_, fb_)
+            og, dg = dr.gather(mi.Point3d, o, ridx), dr.gather(mi.Vector3d, d, ridx)
+            fm, _ = self._scene_sdf(dec, weights, mi.Point3d(og + tm * dg), dr.gather(mi.Float, time, ridx))
+            exact = fm == 0
+            left = fm > 0  # root lies in [tm, b]: replace a
+            # Illinois: when the same endpoint is replaced twice in a row, halve the other's value
+            fb_ = dr.select(left & (side == -1), 0.5 * fb_, fb_)
+            fa_ = dr.select(~left & (side == 1), 0.5 * fa_, fa_)
+            a, fa_ = dr.select(left | exact, tm, a), dr.select(left, fm, fa_)
+            b, fb_ = dr.select(~left | exact, tm, b), dr.select(~left & ~exact, fm, fb_)
+            side = dr.select(left, -1, 1)
+        if dr.width(ridx) > 0:
+            self.last_stats["refine_unconverged"] = dr.width(ridx)
+            dr.scatter(t_out, root(a, b, fa_, fb_), ridx)
+        return t_out
+
+    def _shade(self, o, d, time, t: mi.Float64, hit: mi.Bool) -> tuple[mi.Int32, mi.Vector3f]:
+        """Step 4: hit instance (``argmin_k F_k``) and unit normal, full width."""
+        n = dr.width(o.x)
+        instance = dr.full(mi.Int32, -1, n)
+        normal = dr.zeros(mi.Vector3f, n)
+        ridx = dr.compress(hit)
+        m = dr.width(ridx)
+        if m == 0:
+            return instance, normal
+        dec = self.field.decode()
+        weights = self.field.residual_weights()
+        tg = dr.gather(mi.Float, time, ridx)
+        p = mi.Point3d(dr.gather(mi.Point3d, o, ridx)
+                       + dr.gather(mi.Float64, t, ridx) * dr.gather(mi.Vector3d, d, ridx))
+        _, arg = self._scene_sdf(dec, weights, p, tg)
+        nrm = dr.zeros(mi.Vector3f, m)
+        h = self.cfg.normal_step
+        for k in range(self.field.n):
+            sel = dr.compress(arg == k)
+            if dr.width(sel) == 0:
+                continue
+            pk, tk = dr.gather(mi.Point3d, p, sel), dr.gather(mi.Float, tg, sel)
+            if weights is None:
+                bv = self.field.view(dec, k, tk, dr.width(sel))
+                nk = bv.dir_to_world(box_normal_local(mi.Vector3f(_to_local64(bv, pk)), bv.half))
+            else:
+                grad = []
+                for axis in range(3):
+                    e = mi.Vector3d(*[h if j == axis else 0.0 for j in range(3)])
+                    grad.append(self._instance_sdf(dec, weights, k, mi.Point3d(pk + e), tk)
+                                - self._instance_sdf(dec, weights, k, mi.Point3d(pk - e), tk))
+                g = mi.Vector3d(*grad)
+                nk = mi.Vector3f(g / dr.maximum(dr.norm(g), 1e-300))
+            dr.scatter(nrm, nk, sel)
+        dr.scatter(instance, arg, ridx)
+        dr.scatter(normal, nrm, ridx)
+        return instance, normal
