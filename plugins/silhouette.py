@@ -494,4 +494,6 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
                     rank += dr.select(band == b, 0, cnt)
                 ts = dr.zeros(mi.Float, na * m)
                 dr.scatter(ts, t, r * m + rank)
-                yield dr.gather(mi.UInt32, ray_idx, sub), ts, m
+                rays = dr.gather(mi.UInt32, ray_idx, sub)
+            # yield outside ``suspend_grad``: the consumer differentiates the integral
+            yield rays, ts, m
