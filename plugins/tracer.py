@@ -19,9 +19,9 @@ r"""Sphere-traced instance id, depth and normal of the instance SDF scene (``sdf
  * - near, far
    - |float|
    - Tracing range along each (normalised) ray direction. (Default: 0, 200)
- * - start_margin, max_step_ratio, overshoot
+ * - start_margin
    - |float|
-   - Marching controls, see below. (Default: 0.05, 128, 1e-3)
+   - Enlargement (m) of the boxes whose entry starts the march, see below. (Default: 0.05)
  * - refine_iterations, depth_tolerance
    - |int|, |float|
    - Root refinement: at most this many Illinois steps, until the bracket is narrower than
@@ -51,14 +51,14 @@ The scene SDF is ``F(p) = min_n F_n(p)`` at the ray's time (:mod:`vsrd_plugins.s
 
    * ``f < 0``: the step crossed the surface; ``[t_prev, t]`` brackets it;
    * ``0 <= f < epsilon``: hit at ``t`` (no bracket: a ray passing within ``epsilon`` of a surface);
-   * otherwise step by ``max(f, min(s (1 + overshoot) + epsilon, max_step_ratio f))`` where
-     ``s = f (t - t_prev) / (f_prev - f)`` is the secant estimate of the distance to the zero
-     from the last two samples. ``f`` alone is the classic sphere-tracing step, which needs
-     ``~log(f/epsilon) / sin(theta)`` iterations for a ray at angle ``theta`` to a face; the
-     secant reaches a planar face in one step and the small overshoot makes it land just behind
-     the face, i.e. produces a bracket. On a convex SDF (a single box) the secant step never
-     passes the zero by more than the overshoot; ``max_step_ratio`` bounds it where the minimum
-     over instances switches between samples;
+   * otherwise step by the largest distance over which ``F`` provably stays positive: per
+     instance, the box SDF ``B_n`` is convex along the ray and ``F_n >= B_n``, so outside the
+     box the tangent-line (Newton) step ``B_n / -g_n`` (``g_n = dB_n/dt < 0``) is safe and no
+     bound is needed when ``g_n >= 0``; inside the box (residual surface) the sphere step
+     ``F_n``. The step is the minimum over instances (:meth:`SDFTracerIntegrator._safe_step`).
+     Plain sphere tracing needs ``~log(f/epsilon) / sin(theta)`` iterations for a ray at angle
+     ``theta`` to a face and ``~L / h`` for a ray running parallel to a face at distance ``h``;
+     the tangent step reaches a face in one step and jumps past near misses;
    * a step that leaves every enlarged box jumps to the next enlarged-box entry along the ray,
      or ends the ray as background when there is none or it passes ``far``.
 3. *Refine.* Bracketed hits are refined by the Illinois variant of regula falsi until the
@@ -72,8 +72,9 @@ Box SDFs are evaluated in double precision: a single-precision point 80 m away c
 of depth error. (Box centres at the ray time are computed by :meth:`InstanceField.view` in
 single precision; the residual MLP runs in single precision.)
 
-For ``F = B + R`` the march assumes the residual keeps ``F`` 1-Lipschitz along rays; if it does
-not, a step may end inside the surface, which step 2 detects as a bracket.
+For ``F = B + R`` the sphere steps inside a box assume the residual keeps ``F`` 1-Lipschitz
+along rays; if it does not, a step may end inside the surface, which step 2 detects as a
+bracket. A ray whose origin lies inside a surface hits it at ``t = near``.
 
 Output (:meth:`SDFTracerIntegrator.trace_rays`): ``hit`` (Bool), ``instance`` (Int, -1 for
 background), ``t`` (distance along the normalised direction, 0 for background), ``depth``
@@ -120,8 +121,6 @@ class TracerConfig:
     near: float = 0.0
     far: float = 200.0  # beyond the farthest box-centre range (110 m) plus a vehicle
     start_margin: float = 0.05  # m, enlargement of the start boxes (start strictly outside)
-    max_step_ratio: float = 128.0  # a secant step is at most this many times the SDF value
-    overshoot: float = 1e-3  # relative overshoot of the secant step (to land behind a face)
     refine_iterations: int = 64
     depth_tolerance: float = 1e-6  # m, final bracket width
     normal_step: float = 1e-3  # m, finite-difference step of residual normals
@@ -131,17 +130,16 @@ class TracerConfig:
         d = TracerConfig()
         kw = {}
         for name, typ in (("max_iterations", int), ("epsilon", float), ("near", float),
-                          ("far", float), ("start_margin", float), ("max_step_ratio", float),
-                          ("overshoot", float), ("refine_iterations", int),
+                          ("far", float), ("start_margin", float), ("refine_iterations", int),
                           ("depth_tolerance", float), ("normal_step", float)):
             kw[name] = typ(props.get(name, getattr(d, name)))
         cfg = TracerConfig(**kw)
         if cfg.max_iterations < 1 or cfg.refine_iterations < 0:
             raise ValueError("sdf_tracer: max_iterations must be >= 1 and refine_iterations >= 0")
         if not (cfg.epsilon > 0 and cfg.depth_tolerance > 0 and cfg.normal_step > 0
-                and cfg.start_margin >= 0 and cfg.overshoot >= 0 and cfg.max_step_ratio >= 1):
-            raise ValueError("sdf_tracer: epsilon, depth_tolerance, normal_step must be > 0, "
-                             "start_margin, overshoot >= 0 and max_step_ratio >= 1")
+                and cfg.start_margin >= 0):
+            raise ValueError("sdf_tracer: epsilon, depth_tolerance, normal_step must be > 0 "
+                             "and start_margin >= 0")
         if not (0.0 <= cfg.near < cfg.far):
             raise ValueError("sdf_tracer: need 0 <= near < far")
         return cfg
@@ -245,6 +243,34 @@ class SDFTracerIntegrator(mi.ad.integrators.common.ADIntegrator):
             arg = dr.select(closer, k, arg)
         return best, arg
 
+    def _safe_step(self, dec, weights, p: mi.Point3d, d: mi.Vector3d,
+                   time: mi.Float) -> tuple[mi.Float64, mi.Float64]:
+        """Scene SDF ``f`` at ``p`` and a step along ``d`` over which ``F`` stays positive.
+
+        Per instance, a box SDF is convex along a ray, so it lies above its tangent line:
+        ``B_k(t + s) >= B_k + g_k s`` with ``g_k = dB_k/dt``, and ``F_k >= B_k`` (the residual
+        is >= 0). Outside the box the step ``B_k / -g_k`` (``g_k < 0``) or no bound at all
+        (``g_k >= 0``: the ray moves away from the box for good) is therefore safe, and never
+        shorter than the sphere step ``F_k`` without the residual; inside the box (the residual
+        surface lies within) the sphere step ``F_k`` is used. The step is the minimum over
+        instances (``inf``: nothing ahead can be hit).
+        """
+        width = dr.width(p.x)
+        f = dr.full(mi.Float64, INF, width)
+        step = dr.full(mi.Float64, INF, width)
+        for k in range(self.field.n):
+            bv = self.field.view(dec, k, time, width)
+            pl = _to_local64(bv, p)
+            b = box_sdf_local(pl, mi.Vector3d(bv.half))
+            fk = b if weights is None else b + self._residual(weights, k, pl, bv.half)
+            nl = box_normal_local(mi.Vector3f(pl), bv.half)
+            g = mi.Float64(dr.dot(bv.dir_to_local(mi.Vector3f(d)), nl))
+            tangent = dr.select(g < 0, b / dr.maximum(-g, 1e-300), INF)
+            sk = dr.select(b > 0, dr.maximum(fk, tangent), fk)
+            f = dr.minimum(f, fk)
+            step = dr.minimum(step, sk)
+        return f, step
+
     # -- the tracer ----------------------------------------------------------------------------
     def trace_rays(self, o: mi.Point3f, d: mi.Vector3f, time: mi.Float,
                    sensor: mi.Sensor | None = None) -> dict[str, object]:
@@ -315,7 +341,8 @@ class SDFTracerIntegrator(mi.ad.integrators.common.ADIntegrator):
                 break
             self.last_stats["iterations"] = it + 1
             og, dg = dr.gather(mi.Point3d, o, ridx), dr.gather(mi.Vector3d, d, ridx)
-            f, _ = self._scene_sdf(dec, weights, mi.Point3d(og + t * dg), dr.gather(mi.Float, time, ridx))
+            f, step = self._safe_step(dec, weights, mi.Point3d(og + t * dg), dg,
+                                      dr.gather(mi.Float, time, ridx))
             has_prev = f_prev < INF
             crossed = (f < 0) & has_prev
             stop = (f < cfg.epsilon) & ~crossed  # converged, or started inside a surface
@@ -327,11 +354,6 @@ class SDFTracerIntegrator(mi.ad.integrators.common.ADIntegrator):
             dr.scatter(status, 1, ridx, stop)
             dr.scatter(ta, t, ridx, stop)
             dr.scatter(fa, f, ridx, stop)
-            # next position: sphere step, or the secant step when it is longer
-            use_secant = has_prev & (f_prev > f)
-            secant = dr.select(use_secant, f * (t - t_prev) / dr.maximum(f_prev - f, 1e-300), 0.0)
-            step = dr.maximum(f, dr.minimum(secant * (1.0 + cfg.overshoot) + cfg.epsilon,
-                                            cfg.max_step_ratio * f))
             t_next = t + step
             inside = mi.Bool(False)
             next_entry = dr.full(mi.Float64, INF, m)
