@@ -6,7 +6,8 @@ atomically) under the task's sequence directory, and appends one line per call t
 ``calls.log`` so tests can count how often each target ran. Config switches make chosen frames
 fail (``fail_frames``), produce a non-finite value (``nan_frames``, raising FloatingPointError
 like a diverging optimisation), report a missing output (``lie_frames``), ask to be skipped
-(``skip_frames``), sleep (``sleep_s``) or kill their worker process (``die_frames``).
+(``skip_frames``), sleep (``sleep_s``) or kill their worker process (``die_frames``, after
+``die_delay_s``).
 """
 
 from __future__ import annotations
@@ -46,6 +47,7 @@ def digest_job(task: TargetTask) -> TargetResult:
         log.write(f"{task.frame}\n")
     time.sleep(float(cfg.get("sleep_s", 0.0)))
     if task.frame in cfg.get("die_frames", ()):
+        time.sleep(float(cfg.get("die_delay_s", 0.0)))
         os._exit(3)
     if task.frame in cfg.get("fail_frames", ()):
         raise RuntimeError(f"synthetic failure at frame {task.frame}")

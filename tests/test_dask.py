@@ -32,7 +32,7 @@ def _tasks(out: Path) -> list[TargetTask]:
 
 
 def _snapshot(out: Path) -> tuple[dict, dict]:
-    """Every output file's bytes and each target's (status, error type, outputs) from the manifest."""
+    """Every output file's bytes, and each target's status, error type, outputs, fingerprint."""
     seq_dir = out / SEQ
     files = {str(p.relative_to(seq_dir)): p.read_bytes() for p in sorted(seq_dir.rglob("*"))
              if p.is_file() and p.parent != seq_dir}
@@ -66,13 +66,19 @@ def test_local_cluster_matches_in_process_run(tmp_path, worker_import_path):
 
 def test_existing_scheduler_and_dead_worker(tmp_path, worker_import_path):
     import dask
-    with dask.config.set({"distributed.scheduler.allowed-failures": 0}):
+    # A worker death blames every task the scheduler had assigned to that worker (or whose
+    # result it held, not yet reported): with one task per worker thread (saturation 1.0) and the
+    # job dying only after the others have finished, only the dying job is blamed; with no
+    # retries it fails at once.
+    with dask.config.set({"distributed.scheduler.allowed-failures": 0,
+                          "distributed.scheduler.worker-saturation": 1.0}):
         with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
                                       host="127.0.0.1", dashboard_address=None,
                                       silence_logs=40) as cluster:
+            config = {"n": 64, "die_frames": [2], "die_delay_s": 1.0}
             tasks = [TargetTask(root="/nonexistent", sequence=SEQ, frame=f,
-                                output_dir=str(tmp_path), config={"n": 64, "die_frames": [2]},
-                                seed=1) for f in range(4)]
+                                output_dir=str(tmp_path), config=config, seed=1)
+                     for f in range(4)]
             summary = run_batch(tasks, digest_job, executor="dask",
                                 scheduler=cluster.scheduler_address, progress=False)
     assert (summary.done, summary.failed) == (3, 1)

@@ -92,7 +92,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "batch-status", help="summarise the batch manifests under an output directory",
         description="Print the target counts per status of OUT/<sequence>/manifest.json and "
                     "list failed / unfinished targets. Exit code 0 when every target is "
-                    "finished, 1 when some failed or are unfinished, 2 on a missing or corrupt manifest.")
+                    "finished, 1 when some failed or are unfinished, 2 on a missing or "
+                    "corrupt manifest.")
     p.add_argument("output", metavar="OUT", help="batch output directory")
     p.add_argument("--sequence", action="append", metavar="SEQ",
                    help="only this sequence (repeatable); default: every OUT/*/manifest.json")

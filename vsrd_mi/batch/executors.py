@@ -31,7 +31,9 @@ OnSubmit = Callable[[TargetTask], None]
 def error_type_name(exc: BaseException) -> str:
     """``QualName`` for builtin exceptions, ``module.QualName`` for the others."""
     cls = type(exc)
-    return cls.__qualname__ if cls.__module__ == "builtins" else f"{cls.__module__}.{cls.__qualname__}"
+    if cls.__module__ == "builtins":
+        return cls.__qualname__
+    return f"{cls.__module__}.{cls.__qualname__}"
 
 
 def failed_result(exc: BaseException, *, with_traceback: bool = True) -> TargetResult:
@@ -133,10 +135,14 @@ class DaskExecutor:
                                       f"{cfg.scheduler}: {exc}") from exc
             cluster = None
         else:
+            # without a dashboard the scheduler still serves health/metrics over HTTP: put that
+            # on a free port of the same interface instead of the default 8787
+            http = {} if cfg.dashboard_address is not None else {
+                "dashboard_address": f"{cfg.host}:0"}
             cluster = LocalCluster(n_workers=cfg.workers or os.cpu_count() or 1,
                                    threads_per_worker=cfg.threads_per_worker, processes=True,
                                    host=cfg.host, dashboard_address=cfg.dashboard_address,
-                                   silence_logs=cfg.log_level)
+                                   scheduler_kwargs=http, silence_logs=cfg.log_level)
             client = Client(cluster)
         try:
             yield from self._run_on(client, as_completed, process, iter(tasks), on_submit)

@@ -14,7 +14,7 @@ import contextlib
 import logging
 import time
 from collections.abc import Iterable, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Literal
 
@@ -90,9 +90,9 @@ def make_executor(executor: ExecutorName, *, workers: int | None = None,
         return InProcessExecutor()
     if executor == "dask":
         base = dask or DaskConfig()
-        return DaskExecutor(DaskConfig(**{**base.__dict__,
-                                          "workers": workers if workers is not None else base.workers,
-                                          "scheduler": scheduler or base.scheduler}))
+        return DaskExecutor(replace(
+            base, workers=workers if workers is not None else base.workers,
+            scheduler=scheduler or base.scheduler))
     raise ValueError(f"unknown executor {executor!r}; expected one of {EXECUTOR_NAMES}")
 
 
