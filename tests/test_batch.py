@@ -191,9 +191,12 @@ def test_job_reported_skip_counts_as_finished(tmp_path):
     assert sorted(calls(tmp_path)) == [0, 1, 2]
 
 
-def test_result_status_is_validated():
+def test_result_status_and_task_config_are_validated(tmp_path):
     with pytest.raises(ValueError, match="status"):
         TargetResult(status="ok")
+    for bad in ({"lr": float("nan")}, {"path": tmp_path}):
+        with pytest.raises(ValueError, match="plain JSON"):
+            make_tasks(tmp_path, [0], **bad)[0].fingerprint()
 
 
 # ----------------------------------------------------------------------------- bad input / locking

@@ -65,9 +65,13 @@ class TargetTask:
         The dataset root and output directory are left out so that moving either keeps finished
         targets valid; changing the config or the seed makes a finished target run again.
         """
-        payload = json.dumps({"sequence": self.sequence, "frame": int(self.frame),
-                              "config": self.config, "seed": int(self.seed)},
-                             sort_keys=True, allow_nan=False, default=str)
+        try:
+            payload = json.dumps({"sequence": self.sequence, "frame": int(self.frame),
+                                  "config": self.config, "seed": int(self.seed)},
+                                 sort_keys=True, allow_nan=False)
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"target {self.sequence}/{self.key}: the task config must be "
+                             f"plain JSON with finite numbers ({exc})") from exc
         return hashlib.sha256(payload.encode("utf-8")).hexdigest()
 
 
