@@ -230,6 +230,13 @@ def test_second_batch_on_same_output_is_refused(tmp_path):
     assert run_batch(make_tasks(tmp_path, [0]), digest_job, progress=False).done == 1
 
 
+def test_same_directory_spelled_differently_shares_one_manifest(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    tasks = make_tasks(Path("out"), [0]) + make_tasks(Path("./out/../out"), [1])
+    assert run_batch(tasks, digest_job, progress=False).done == 2
+    assert sorted(manifest_targets(tmp_path / "out")) == ["0000000000", "0000000001"]
+
+
 def test_duplicate_targets_and_bad_executor_arguments_are_rejected(tmp_path):
     with pytest.raises(ValueError, match="appears twice"):
         run_batch(make_tasks(tmp_path, [0, 1, 0]), digest_job, progress=False)

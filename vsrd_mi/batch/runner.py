@@ -136,12 +136,12 @@ def run_batch(tasks: Iterable[TargetTask], process: Process, *,
     with contextlib.ExitStack() as stack:
         manifests: dict[Path, Manifest] = {}
         for task in task_list:
-            if task.sequence_dir not in manifests:
-                manifests[task.sequence_dir] = stack.enter_context(
+            if task.sequence_dir.resolve() not in manifests:
+                manifests[task.sequence_dir.resolve()] = stack.enter_context(
                     Manifest(task.sequence_dir, task.sequence))
         todo = []
         for task in task_list:
-            if manifests[task.sequence_dir].is_finished(task, cfg.output_checks):
+            if manifests[task.sequence_dir.resolve()].is_finished(task, cfg.output_checks):
                 summary.skipped += 1
             else:
                 todo.append(task)
@@ -150,14 +150,17 @@ def run_batch(tasks: Iterable[TargetTask], process: Process, *,
                                        disable=not progress, unit="target", desc="batch"))
 
         def on_submit(task: TargetTask) -> None:
-            manifests[task.sequence_dir].mark_running(task, time.time())
+            manifests[task.sequence_dir.resolve()].mark_running(task, time.time())
 
-        for task, result in runner.run(process, todo, on_submit):
-            status = manifests[task.sequence_dir].record(task, result, cfg.output_checks)
+        # closing(): an error here shuts a Dask cluster down at once, not at garbage collection
+        results = stack.enter_context(contextlib.closing(runner.run(process, todo, on_submit)))
+        for task, result in results:
+            manifest = manifests[task.sequence_dir.resolve()]
+            status = manifest.record(task, result, cfg.output_checks)
             if status == "failed":
                 summary.failed += 1
                 summary.failed_targets.append(f"{task.sequence}/{task.key}")
-                error = manifests[task.sequence_dir].targets[task.key]["error"]
+                error = manifest.targets[task.key]["error"]
                 log.warning("target %s/%s failed: %s: %s", task.sequence, task.key,
                             error["type"], error["message"])
             elif status == "skipped":
