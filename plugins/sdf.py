@@ -486,7 +486,7 @@ class InstanceField:
         return self.residual.generate_weights()
 
     def instance_sdfs(self, dec: DecodedBoxes, p: mi.Point3f, time: mi.Float,
-                      weights: mi.TensorXf | None = None, reach: float = 0.0,
+                      weights: mi.TensorXf | None = None, reach: float | mi.Float = 0.0,
                       instances: Sequence[int] | None = None) -> list[mi.Float]:
         """SDF of every instance at points ``p`` (scene frame) at ray times ``time``.
 

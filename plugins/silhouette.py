@@ -97,6 +97,13 @@ from .sdf import (InstanceField, box_sdf_local, ray_box_interval, scene_sdf, sof
                   softplus)
 
 GOLDEN = 0.6180339887498949
+#: Below this interval opacity the label is taken at the interval midpoint (see _accrual_position).
+ACCRUAL_MIN_OPACITY = 1e-6
+#: Below this |s * (f_b - f_a)| an interval's SDF is treated as flat (label at the midpoint).
+ACCRUAL_MIN_SLOPE = 1e-4
+#: Intervals starting deeper than ``-s * f_a`` > this use the midpoint (exp overflow guard; only
+#: rays starting inside a box reach such depths with non-zero transmittance).
+ACCRUAL_MAX_DEPTH = 30.0
 
 
 @dataclass(frozen=True)
@@ -204,18 +211,18 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         dec = self.field.decode()
         if self.cfg.sampling == "dense":
             t, m = self._dense_positions(dec, o, d, time)
-            groups = [(dr.arange(mi.UInt32, n_rays), t, m)]
+            groups = [(dr.arange(mi.UInt32, n_rays), t, m, mi.Bool(True))]
         else:
             groups = self._adaptive_groups(dec, o, d, time)
         out = [dr.zeros(mi.Float, n_rays) for _ in range(self.field.n)]
         stats = {"rays": 0, "samples": 0, "sdf_evals": 0}
-        for ray_idx, t, m in groups:
+        for ray_idx, t, m, active in groups:
             labels = self._integrate(dec, ray_idx, o, d, time, t, m)
             for k, lab in enumerate(labels):
                 if self.cfg.sampling == "dense":
                     out[k] = lab
                 else:
-                    dr.scatter_add(out[k], lab, ray_idx)
+                    dr.scatter_add(out[k], lab, ray_idx, active)
             for key in stats:
                 stats[key] += self.last_stats[key]
         self.last_stats = stats
@@ -241,8 +248,9 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
             last = (lane % m) == (m - 1)
             nxt = dr.select(last, lane, lane + 1)
         weights = self.field.residual_weights()
-        reach = dr.detach(self._reach())[0] + self.field.residual_reach
-        sdfs = self.field.instance_sdfs(dec, p, tg, weights, reach=float(reach))
+        # an opaque Float, not a Python float: a literal would recompile whenever s changes
+        reach = dr.detach(self._reach()) + self.field.residual_reach
+        sdfs = self.field.instance_sdfs(dec, p, tg, weights, reach=reach)
         f = scene_sdf(sdfs)
         labels = softmin_labels(sdfs, self.temperature)
         self.last_stats = {"rays": n, "samples": n * m, "sdf_evals": n * m * self.field.n}
@@ -252,12 +260,34 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         log1ma = dr.select(last, 0.0, log1ma)
         log_t = dr.block_prefix_sum(log1ma, m, exclusive=True)
         w = dr.exp(log_t) - dr.exp(log_t + log1ma)
-        use_next = dr.detach(f_next < f)
+        theta = self._accrual_position(s, f, f_next, log1ma)
         out = []
         for lab in labels:
-            lab_at = dr.select(use_next, dr.gather(mi.Float, lab, nxt), lab)
+            lab_at = lab + (dr.gather(mi.Float, lab, nxt) - lab) * theta
             out.append(dr.block_sum(w * lab_at, m))
         return out
+
+    @staticmethod
+    def _accrual_position(s, fa, fb, log1ma) -> mi.Float:
+        """Opacity-weighted mean position ``E[theta]`` in [0, 1] of an interval's weight.
+
+        With ``f`` linear over the interval, the opacity accrued up to ``theta`` is
+        ``A(theta) = 1 - Phi(f(theta)) / Phi(fa)`` and ``int_0^1 Phi(f) = (sp(s fb) - sp(s fa)) /
+        (s (fb - fa))`` (``sp`` = softplus), so ``E[theta] = 1 - (1 - I / Phi(fa)) / alpha``.
+        The label is interpolated there between the endpoint labels: second-order accurate in
+        the sample spacing where labels vary smoothly (the endpoint rule is first-order), and the
+        surface crossing in the sharp limit. Intervals with negligible opacity or a flat ``f``
+        use the midpoint (their weight is ~0 or uniform).
+        """
+        alpha = 1.0 - dr.exp(log1ma)
+        df = fb - fa
+        ok = ((alpha > ACCRUAL_MIN_OPACITY) & (dr.abs(s * df) > ACCRUAL_MIN_SLOPE)
+              & (s * fa > -ACCRUAL_MAX_DEPTH))
+        sdf_ = s * dr.select(ok, df, 1.0)
+        # I / Phi(fa) = (sp(s fb) - sp(s fa)) / (s df) * exp(sp(-s fa)), with sp(x) - sp(-x) = x
+        ratio = (softplus(s * fb) - softplus(s * fa)) / sdf_ * dr.exp(dr.select(ok, softplus(-s * fa), 0.0))
+        theta = 1.0 - (1.0 - ratio) / dr.select(ok, alpha, 1.0)
+        return dr.select(ok, dr.clip(theta, 0.0, 1.0), 0.5)
 
     # -- dense (reference) sampling ------------------------------------------------------------
     def _dense_positions(self, dec, o, d, time) -> tuple[mi.Float, int]:
@@ -273,7 +303,7 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
             p = dr.gather(mi.Point3f, o, r) + tc * dr.gather(mi.Vector3f, d, r)
             tg = dr.gather(mi.Float, time, r)
             f = scene_sdf(self.field.instance_sdfs(dec, p, tg, self.field.residual_weights(),
-                                                   reach=float(dr.detach(self._reach())[0]) + self.field.residual_reach))
+                                                   reach=dr.detach(self._reach()) + self.field.residual_reach))
             last = i == (nc - 1)
             f_next = dr.gather(mi.Float, f, dr.select(last, lane, lane + 1))
             s = self.sharpness
@@ -445,9 +475,10 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
     def _adaptive_groups(self, dec, o, d, time):
         """Sample positions for the adaptive strategy, one group per band count.
 
-        Yields ``(ray_idx, t, m)``: rays with exactly ``g`` bands get ``m = g (K + 2)`` samples
+        Yields ``(ray_idx, t, m, active)``: rays with exactly ``g`` bands get ``m = g (K + 2)`` samples
         (entry, ``K`` band samples, closest approach / exit per band), merged in order by a
-        closed-form rank (bands are internally sorted), so no per-ray sort is needed.
+        closed-form rank (bands are internally sorted), so no per-ray sort is needed. ``active``
+        masks the padding copy of a single-ray group.
         """
         kk = self.cfg.band_samples
         per = kk + 2
@@ -460,6 +491,13 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
                 na = dr.width(sub)
                 if na == 0:
                     continue
+                # a width-1 group would turn its values into kernel literals (new kernels for
+                # every value, e.g. each sharpness): duplicate its ray and mask the copy out
+                active = mi.Bool(True)
+                if na == 1:
+                    sub = dr.gather(mi.UInt32, sub, dr.zeros(mi.UInt32, 2))
+                    active = dr.arange(mi.UInt32, 2) < 1
+                    na = 2
                 m = g * per
                 lane = dr.arange(mi.UInt32, na * m)
                 r = lane // m
@@ -496,4 +534,4 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
                 dr.scatter(ts, t, r * m + rank)
                 rays = dr.gather(mi.UInt32, ray_idx, sub)
             # yield outside ``suspend_grad``: the consumer differentiates the integral
-            yield rays, ts, m
+            yield rays, ts, m, active

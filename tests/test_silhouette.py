@@ -1,0 +1,359 @@
+"""The ``vsrd_silhouette`` integrator: accuracy, gradients, robustness, Mitsuba plumbing, fitting.
+
+Accuracy reference: the integrator's own differentiable integral (``_integrate``) evaluated on a
+uniform grid of samples fine enough to resolve ``1/s`` (``REF_SPACING_S``), which converges to the
+continuous NeuS integral. The paper-count dense sampling (100 + 100) is itself up to ~0.4 off that
+reference at s = 10 on grazing rays (its 1 m coarse spacing misses thin dips), so adaptive is
+compared with the accurate reference (and with a dense run of 2000 + 400 samples), not with it.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import vsrd_mi  # noqa: F401  (selects the Mitsuba variant, registers the plugins)
+import drjit as dr
+import mitsuba as mi
+
+from vsrd_plugins.sdf import instance_properties
+from vsrd_plugins.silhouette import VSRDSilhouetteIntegrator
+from vsrd_mi.geometry.boxes import Box3D
+from vsrd_mi.geometry.iou3d import iou3d
+
+BOX_KEYS = ("box_dims", "box_centre", "box_yaw", "box_velocity")
+#: reference grid spacing as a fraction of 1/s
+REF_SPACING_S = 0.05
+#: accurate dense sample counts (coarse, fine)
+DENSE_ACCURATE = (2000, 400)
+#: gradient cosine asserted in the slow full accuracy run (see the module docstring of the report)
+GRAD_COSINE_MIN = 0.99
+#: AD vs central differences (float32 labels; see test_gradients_match_finite_differences)
+FD_TOLERANCE = 0.25
+FD_COSINE_MIN = 0.98
+
+
+# ----------------------------------------------------------------------------------------------
+# scene and ray helpers
+# ----------------------------------------------------------------------------------------------
+
+
+def random_scene(rng, n: int, dynamic: bool = False) -> dict:
+    """``n`` car-like boxes 6-30 m ahead of a camera at the origin, with touching pairs."""
+    centres = np.stack([rng.uniform(-7, 7, n), rng.uniform(0.3, 1.2, n), rng.uniform(6, 30, n)], 1)
+    sizes = np.stack([rng.uniform(1.6, 2.1, n), rng.uniform(1.4, 1.8, n), rng.uniform(3.8, 5.0, n)], 1)
+    yaws = rng.uniform(-np.pi, np.pi, n)
+    for i in range(1, n, 3):  # every third box sits next to its predecessor (interacting SDFs)
+        yaws[i] = yaws[i - 1]
+        c, s_ = np.cos(yaws[i]), np.sin(yaws[i])
+        side = np.array([c, 0.0, -s_])  # local +x in the scene frame
+        gap = rng.uniform(0.05, 0.4)
+        centres[i] = centres[i - 1] + side * (0.5 * (sizes[i - 1, 0] + sizes[i, 0]) + gap)
+        centres[i, 1] = centres[i - 1, 1]
+    vel = rng.normal(0.0, 0.6, (n, 3)) * np.array([1.0, 0.0, 1.0]) if dynamic else np.zeros((n, 3))
+    dyn = (np.arange(n) % 2 == 0).astype(float) if dynamic else np.zeros(n)
+    return {"centres": centres, "sizes": sizes, "yaws": yaws, "velocities": vel, "dynamic": dyn}
+
+
+def make(scene: dict, **kw) -> VSRDSilhouetteIntegrator:
+    props = mi.Properties()
+    for k, v in {**instance_properties(**scene), **kw}.items():
+        props[k] = v
+    return VSRDSilhouetteIntegrator(props)
+
+
+def training_rays(rng, scene: dict, n: int, max_time: float = 0.0):
+    """Rays from near the origin: 60 % aimed at box interiors, 20 % at box edges/corners (grazing),
+    20 % anywhere in a 90-degree frustum. Returns (o, d, time) as NumPy arrays."""
+    nb = len(scene["centres"])
+    times = rng.uniform(-max_time, max_time, n) if max_time else np.zeros(n)
+    o = rng.normal(0.0, 0.05, (n, 3))
+    k = rng.integers(0, nb, n)
+    half = 0.5 * scene["sizes"][k]
+    local = rng.uniform(-1, 1, (n, 3)) * half
+    kind = rng.uniform(size=n)
+    edge = (kind >= 0.6) & (kind < 0.8)
+    snap = rng.uniform(size=(n, 3)) < 0.67
+    local = np.where(edge[:, None] & snap, np.sign(local) * half * (1.0 + rng.normal(0, 0.01, (n, 3))), local)
+    yaw = scene["yaws"][k]
+    c, s_ = np.cos(yaw), np.sin(yaw)
+    world = np.stack([c * local[:, 0] + s_ * local[:, 2], local[:, 1], -s_ * local[:, 0] + c * local[:, 2]], 1)
+    centre = scene["centres"][k] + scene["dynamic"][k, None] * scene["velocities"][k] * times[:, None]
+    target = centre + world
+    anywhere = np.stack([rng.uniform(-1, 1, n), rng.uniform(-0.3, 0.3, n), np.ones(n)], 1)
+    d = np.where((kind >= 0.8)[:, None], anywhere, target - o)
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    return o, d, times
+
+
+def to_mi(o, d, t):
+    return (mi.Point3f(np.ascontiguousarray(o.T, np.float32)),
+            mi.Vector3f(np.ascontiguousarray(d.T, np.float32)), mi.Float(t.astype(np.float32)))
+
+
+def reference_labels(it: VSRDSilhouetteIntegrator, scene: dict, rays, s: float):
+    """The integral on a uniform grid over [0, beyond the farthest box] (spacing REF_SPACING_S/s)."""
+    o, d, t = rays
+    n = dr.width(o.x)
+    reach = np.linalg.norm(scene["centres"], axis=1) + np.linalg.norm(scene["sizes"], axis=1)
+    reach += np.abs(scene["velocities"]).sum(1) * 3.0 + 2.0
+    t_max = float(reach.max())
+    m = int(np.ceil(t_max / (REF_SPACING_S / s)))
+    grid = np.linspace(0.0, t_max, m).astype(np.float32)
+    return it._integrate(it.field.decode(), dr.arange(mi.UInt32, n), o, d, t, mi.Float(np.tile(grid, n)), m)
+
+
+def labels_and_grads(it, fn, weights):
+    """Soft labels (instances x rays) and the gradient of ``sum weights * labels`` (all box params)."""
+    for k in BOX_KEYS:
+        dr.enable_grad(it.field.params[k])
+    labels = fn(it)[:it.field.n]
+    loss = labels[0] * weights[0]
+    for lab, w in zip(labels[1:], weights[1:]):
+        loss = loss + lab * w
+    dr.backward(dr.sum(loss))
+    vals = np.stack([np.array(dr.detach(x)) for x in labels])
+    grad = np.concatenate([np.array(dr.grad(it.field.params[k])) for k in BOX_KEYS])
+    for k in BOX_KEYS:
+        it.field.params[k] = dr.detach(it.field.params[k])
+    return vals, grad
+
+
+def cosine(a, b) -> float:
+    return float(a @ b / (np.linalg.norm(a) * np.linalg.norm(b)))
+
+
+# ----------------------------------------------------------------------------------------------
+# accuracy of adaptive sampling
+# ----------------------------------------------------------------------------------------------
+
+
+def accuracy_case(n_inst: int, s: float, n_rays: int, seed: int, with_grads: bool):
+    rng = np.random.default_rng(seed)
+    scene = random_scene(rng, n_inst, dynamic=True)
+    rays = to_mi(*training_rays(rng, scene, n_rays, max_time=2.0))
+    weights = [mi.Float(rng.normal(size=n_rays).astype(np.float32)) for _ in range(n_inst)]
+    kw = {"sharpness": s, "temperature": 1.0 / s}
+    render = lambda it: it.render_rays(*rays)  # noqa: E731
+    out = {}
+    ref_it = make(scene, sampling="dense", **kw)
+    cases = [("ref", ref_it, lambda it: reference_labels(it, scene, rays, s)),
+             ("adaptive", make(scene, band_samples=band_samples_for(s), **kw), render)]
+    if with_grads:
+        cases.append(("dense", make(scene, sampling="dense", coarse_samples=DENSE_ACCURATE[0],
+                                    fine_samples=DENSE_ACCURATE[1], **kw), render))
+    for name, it, fn in cases:
+        if with_grads:
+            out[name] = labels_and_grads(it, fn, weights)
+        else:
+            with dr.suspend_grad():
+                out[name] = (np.stack([np.array(x) for x in fn(it)[:n_inst]]), None)
+    return out
+
+
+def band_samples_for(s: float) -> int:
+    """K meeting max <= 0.05 / p99 <= 0.01: the default 16 at s >= 10; at s <= 3 the default's
+    99th percentile is ~0.03 (measured; error ~ 1/K), so the bound is asserted with K = 64."""
+    return 16 if s >= 10.0 else 64
+
+
+# default: small cases (a cold 6-instance adaptive compile alone takes ~90 s on 2 cores);
+# 6 and 12 instances run in the slow full test.
+@pytest.mark.parametrize("n_inst,s", [(1, 10.0), (3, 3.0), (2, 10.0)])
+def test_adaptive_matches_reference(n_inst, s):
+    out = accuracy_case(n_inst, s, 128, seed=10 + n_inst, with_grads=False)
+    err = np.abs(out["adaptive"][0] - out["ref"][0]).max(0)
+    assert np.all(np.isfinite(err))
+    # enough of the rays see something, so the comparison is not vacuous
+    assert (out["ref"][0].sum(0) > 0.5).mean() > 0.3
+    print(f"n={n_inst} s={s} max={err.max():.4f} p99={np.quantile(err, 0.99):.4f}")
+    assert err.max() <= 0.05, err.max()
+    assert np.quantile(err, 0.99) <= 0.01, np.quantile(err, 0.99)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("n_inst", [1, 3, 6, 12])
+@pytest.mark.parametrize("s", [1.0, 3.0, 10.0])
+def test_adaptive_matches_reference_full(n_inst, s):
+    out = accuracy_case(n_inst, s, 1024, seed=100 + n_inst, with_grads=True)
+    err = np.abs(out["adaptive"][0] - out["ref"][0]).max(0)
+    assert err.max() <= 0.05 and np.quantile(err, 0.99) <= 0.01
+    g_ref, g_ad, g_dense = out["ref"][1], out["adaptive"][1], out["dense"][1]
+    print(f"n={n_inst} s={s} max={err.max():.4f} p99={np.quantile(err, 0.99):.4f} "
+          f"cos(ad,ref)={cosine(g_ad, g_ref):.4f} cos(ad,dense)={cosine(g_ad, g_dense):.4f} "
+          f"cos(dense,ref)={cosine(g_dense, g_ref):.4f}")
+    assert cosine(g_ad, g_ref) >= GRAD_COSINE_MIN
+    assert cosine(g_ad, g_dense) >= GRAD_COSINE_MIN
+
+
+# ----------------------------------------------------------------------------------------------
+# gradients vs finite differences
+# ----------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("sampling", ["dense", "fixed"])
+def test_gradients_match_finite_differences(sampling):
+    """AD gradient of a random-weighted loss vs central differences of raw box parameters.
+
+    The integral has no differentiable symbolic loop (sample positions are detached, the sums use
+    ``dr.block_prefix_sum`` / ``dr.block_sum``); if one were introduced with a wrong
+    ``max_iterations`` hint its gradients would silently go wrong, which this check catches.
+    ``fixed``: the integral on fixed uniform samples; ``dense``: on the dense strategy's own sample
+    positions, frozen (they are detached in the integrator, so AD differentiates exactly this; FD
+    of the full strategy would also see importance samples jump, which AD by design ignores).
+    """
+    rng = np.random.default_rng(5)
+    scene = random_scene(rng, 3, dynamic=True)
+    n_rays, s = 256, 3.0
+    rays = to_mi(*training_rays(rng, scene, n_rays, max_time=2.0))
+    w = [rng.normal(size=n_rays) for _ in range(3)]
+    kw = {"sharpness": s, "temperature": 1.0 / s}
+    grid_m = 400  # few samples: float32 rounding of long prefix sums would swamp small FDs
+    grid = mi.Float(np.tile(np.linspace(0.0, 45.0, grid_m).astype(np.float32), n_rays))
+
+    it = make(scene, sampling="dense", **kw)
+    if sampling == "dense":  # the dense strategy's own positions, frozen at the base parameters
+        with dr.suspend_grad():
+            grid, grid_m = it._dense_positions(it.field.decode(), *rays)
+            dr.eval(grid)
+
+    def labels(it):
+        return it._integrate(it.field.decode(), dr.arange(mi.UInt32, n_rays), *rays, grid, grid_m)
+
+    def loss(raw: dict) -> float:
+        it = make(scene, sampling="dense", **kw)
+        for k, v in raw.items():
+            it.field.params[k] = mi.Float(v.astype(np.float32))
+        with dr.suspend_grad():
+            lab = labels(it)
+            return float(sum(np.dot(np.array(lab[k], dtype=np.float64), w[k]) for k in range(3)))
+
+    base = {k: np.array(it.field.params[k], dtype=np.float64) for k in BOX_KEYS}
+    _, g = labels_and_grads(it, labels, [mi.Float(x.astype(np.float32)) for x in w])
+    offsets = np.cumsum([0] + [len(base[k]) for k in BOX_KEYS])
+    # eps per raw parameter: ~1 mm of decoded centre, 3 mm of size (1/s = 0.33 m; a 1 cm step already
+    # shows the curvature), ~2e-3 rad of yaw, 2 mm/frame of velocity
+    eps = {"box_dims": 0.002, "box_centre": 3e-5, "box_yaw": 2e-3, "box_velocity": 2e-3}
+    checks = [("box_centre", 0), ("box_centre", 2), ("box_dims", 0), ("box_dims", 5),
+              ("box_yaw", 1), ("box_velocity", 0), ("box_velocity", 8)]
+    ads, fds = [], []
+    for key, i in checks:
+        e = eps[key]
+        plus, minus = dict(base), dict(base)
+        plus[key], minus[key] = base[key].copy(), base[key].copy()
+        plus[key][i] += e
+        minus[key][i] -= e
+        fds.append((loss(plus) - loss(minus)) / (2 * e))
+        ads.append(g[offsets[BOX_KEYS.index(key)] + i])
+    ads, fds = np.array(ads), np.array(fds)
+    print("AD", ads, "FD", fds)
+    # per entry within 25 % of the largest checked gradient, and the vectors aligned
+    assert np.all(np.abs(ads - fds) <= FD_TOLERANCE * np.abs(fds).max()), (ads, fds)
+    assert cosine(ads, fds) >= FD_COSINE_MIN
+
+
+# ----------------------------------------------------------------------------------------------
+# robustness
+# ----------------------------------------------------------------------------------------------
+
+
+def finite_labels_and_grads(scene: dict, rays, **kw) -> None:
+    for sampling in ("adaptive", "dense"):
+        it = make(scene, sampling=sampling, coarse_samples=32, fine_samples=16, **kw)
+        n = dr.width(rays[0].x)
+        w = [mi.Float(np.linspace(-1, 1, n, dtype=np.float32)) for _ in range(it.field.n)]
+        vals, grad = labels_and_grads(it, lambda it: it.render_rays(*rays), w)
+        assert np.all(np.isfinite(vals)), sampling
+        assert np.all(vals >= -1e-5) and np.all(vals.sum(0) <= 1 + 1e-4), sampling
+        assert np.all(np.isfinite(grad)), sampling
+
+
+@pytest.mark.parametrize("s", [1.0, 100.0, 1e4])
+def test_no_nan_extreme_cases(s):
+    box = {"centres": np.array([[0.0, 0.0, 0.0], [3.0, 0.0, 10.0], [0.0, 0.0, 100.0], [0.0, 0.0, 140.0]]),
+           "sizes": np.array([[1.8, 1.5, 4.2], [2.0, 1.6, 4.5], [1.8, 1.5, 4.2], [1.8, 1.5, 4.2]]),
+           "yaws": np.array([0.0, 0.0, 0.5, 0.0]), "velocities": np.zeros((4, 3)), "dynamic": np.zeros(4)}
+    h = 0.5 * box["sizes"][1]
+    c = box["centres"][1]
+    o = np.zeros((7, 3))  # the camera sits inside box 0
+    targets = np.array([c + [h[0], 0.0, -h[2]], c + [h[0], 0.0, h[2]],       # along a face
+                        c + [h[0], h[1], 0.0], [0.0, 0.0, 100.0],              # edge; far box
+                        [0.0, 0.0, 150.0], [0.0, 1.0, 5.0], [0.0, -5.0, 1.0]])
+    o[0] = c + [h[0], 0.0, -h[2] - 5.0]  # ray 0 runs exactly in the plane of a side face
+    o[2] = c + [h[0], h[1], -10.0]       # ray 2 runs exactly along an edge
+    d = targets - o
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    rays = to_mi(o, d, np.zeros(7))
+    finite_labels_and_grads(box, rays, sharpness=s, temperature=1.0 / s)
+
+
+def test_no_nan_at_decoding_bounds_and_zero_yaw():
+    from vsrd_plugins.sdf import BoxRanges
+    r = BoxRanges()
+    scene = {"centres": np.array([[0.0, 0.5, 12.0], [3.0, 0.5, 15.0]]),
+             "sizes": np.array([2.0 * np.array(r.half_lo) * 1.0001, 2.0 * np.array(r.half_hi) * 0.9999]),
+             "yaws": np.zeros(2), "velocities": np.zeros((2, 3)), "dynamic": np.zeros(2)}
+    rng = np.random.default_rng(9)
+    rays = to_mi(*training_rays(rng, scene, 64))
+    it = make(scene)
+    it.field.params["box_yaw"] = mi.Float(0.0, 0.0, 1.0, 0.0)
+    w = [mi.Float(np.ones(64, np.float32))] * 2
+    vals, grad = labels_and_grads(it, lambda it: it.render_rays(*rays), w)
+    assert np.all(np.isfinite(vals)) and np.all(np.isfinite(grad))
+    assert vals[0].max() > 0.5  # the zero-yaw box still renders (as yaw 0)
+
+
+# ----------------------------------------------------------------------------------------------
+# Mitsuba plumbing: load_dict, render, traverse, no recompilation
+# ----------------------------------------------------------------------------------------------
+
+
+def small_scene_dict(scene: dict, **kw) -> dict:
+    from vsrd_mi.scene.sensors import perspective_sensor
+    K = np.array([[40.0, 0, 15.5], [0, 40.0, 11.5], [0, 0, 1]])
+    return {"type": "scene",
+            "integrator": {"type": "vsrd_silhouette", "id": "vsrd", **instance_properties(**scene), **kw},
+            "sensor": perspective_sensor(K, np.eye(4), (32, 24), 0),
+            }
+
+
+def test_render_traverse_and_no_recompilation():
+    rng = np.random.default_rng(4)
+    scene = random_scene(rng, 2)
+    sc = mi.load_dict(small_scene_dict(scene, residual=True))
+    img = mi.render(sc, spp=1)
+    assert img.shape == (24, 32, 3 + 3)  # RGB + label_0, label_1, background
+    arr = np.array(img)
+    assert np.all(np.isfinite(arr))
+    np.testing.assert_allclose(arr[..., 3:].sum(-1), 1.0, atol=1e-4)
+    params = mi.traverse(sc)
+    keys = set(params.keys())
+    for k in ("vsrd.box_dims", "vsrd.box_centre", "vsrd.box_yaw", "vsrd.box_velocity",
+              "vsrd.rdf_embedding", "vsrd.rdf_hyper_w0", "vsrd.sharpness", "vsrd.temperature"):
+        assert k in keys, k
+    rays = to_mi(*training_rays(rng, scene, 256))
+    integ = sc.integrator()
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    try:
+        compiles = []
+        # warm-up at a few values (every band-count group gets compiled once), then new values
+        schedule = [3.0, 10.0, 13.0, 4.0, 7.0, 11.0, 12.5]
+        for i, s in enumerate(schedule):
+            params["vsrd.sharpness"] = s
+            params["vsrd.temperature"] = 1.0 / s
+            params.update()
+            dr.kernel_history()  # clear
+            p = integ.field.params["box_centre"]
+            dr.enable_grad(p)
+            lab = integ.render_rays(*rays)
+            dr.backward(dr.sum(lab[0] * lab[0]))
+            g = dr.grad(p)
+            dr.eval(g)
+            hist = dr.kernel_history()
+            compiles.append(sum(1 for k in hist if k.get("type") == dr.KernelType.JIT
+                                and not k.get("cache_hit", True)))
+            integ.field.params["box_centre"] = dr.detach(p)
+            assert np.all(np.isfinite(np.array(g)))
+        assert compiles[3:] == [0, 0, 0, 0], compiles
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, False)
