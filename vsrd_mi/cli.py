@@ -15,6 +15,7 @@ import sys
 SUBCOMMAND_MODULES: tuple[str, ...] = (
     "vsrd_mi.data.cli",
     "vsrd_mi.data.synth_cli",
+    "vsrd_mi.optimise.autolabel",
     "vsrd_mi.init.cli",
     "vsrd_mi.evaluate.cli",
     "vsrd_mi.batch.cli",

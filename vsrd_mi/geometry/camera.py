@@ -5,6 +5,10 @@ from __future__ import annotations
 import numpy as np
 
 from .boxes import BOX_EDGES, Box3D
+from .xp import NP
+
+#: Stand-in for +-infinity in footprints (finite so gradients stay finite).
+FAR_PX = 1e8
 
 #: Points closer than this to the camera plane (metres) are clipped away before projection.
 NEAR_PLANE = 0.1
@@ -47,6 +51,47 @@ def clip_edges_to_near(pts_cam: np.ndarray, edges: np.ndarray = BOX_EDGES,
     return np.concatenate(out, axis=0)
 
 
+def footprint(corners, K, bounds, near: float = NEAR_PLANE, xp=NP):
+    """2D footprint of a box from its 8 camera-frame corners; NumPy or Dr.Jit.
+
+    ``corners`` is a sequence of 8 ``(x, y, z)`` triples of arrays (any shape, all alike),
+    ``K`` a 3x3 intrinsic matrix (floats), ``bounds`` the image ``(x1, y1, x2, y2)``. The 12
+    edges are clipped to ``z >= near``, the kept points projected and the enclosing rectangle
+    clipped to ``bounds``. Returns ``(x1, y1, x2, y2, valid)``; ``valid`` is false where nothing
+    of the box is in front of the camera or inside the image.
+    """
+    fx, fy, cx, cy = float(K[0][0]), float(K[1][1]), float(K[0][2]), float(K[1][2])
+    s = float(K[0][1])
+    x1 = y1 = FAR_PX
+    x2 = y2 = -FAR_PX
+
+    def add(p, keep, box):
+        bx1, by1, bx2, by2 = box
+        z = xp.maximum(p[2], near)
+        u = (fx * p[0] + s * p[1]) / z + cx
+        v = fy * p[1] / z + cy
+        return (xp.where(keep, xp.minimum(bx1, u), bx1), xp.where(keep, xp.minimum(by1, v), by1),
+                xp.where(keep, xp.maximum(bx2, u), bx2), xp.where(keep, xp.maximum(by2, v), by2))
+
+    box = (x1, y1, x2, y2)
+    kept = [c[2] >= near for c in corners]
+    for c, keep in zip(corners, kept):
+        box = add(c, keep, box)
+    for i, j in BOX_EDGES:
+        a, b = corners[i], corners[j]
+        cross = kept[i] != kept[j]
+        dz = b[2] - a[2]
+        t = (near - a[2]) / xp.where(cross, dz, 1.0)
+        q = tuple(a[k] + t * (b[k] - a[k]) for k in range(3))
+        box = add((q[0], q[1], near + 0.0 * q[2]), cross, box)
+    bx1, by1, bx2, by2 = bounds
+    x1 = xp.minimum(xp.maximum(box[0], bx1), bx2)
+    x2 = xp.minimum(xp.maximum(box[2], bx1), bx2)
+    y1 = xp.minimum(xp.maximum(box[1], by1), by2)
+    y2 = xp.minimum(xp.maximum(box[3], by1), by2)
+    return x1, y1, x2, y2, (x2 > x1) & (y2 > y1)
+
+
 def box_to_2d(box: Box3D, K: np.ndarray, world_to_cam: np.ndarray | None = None,
               image_size: tuple[int, int] | None = None, near: float = NEAR_PLANE,
               dt: float = 0.0) -> np.ndarray | None:
@@ -60,16 +105,8 @@ def box_to_2d(box: Box3D, K: np.ndarray, world_to_cam: np.ndarray | None = None,
     corners = box.at_offset(dt).corners()
     if world_to_cam is not None:
         corners = transform_points(world_to_cam, corners)
-    pts = clip_edges_to_near(corners, near=near)
-    if len(pts) == 0:
+    bounds = image_bounds(image_size) if image_size is not None else (-FAR_PX, -FAR_PX, FAR_PX, FAR_PX)
+    x1, y1, x2, y2, valid = footprint([tuple(c) for c in corners], K, bounds, near)
+    if not valid:
         return None
-    uv = project(K, pts)
-    x1, y1 = uv.min(axis=0)
-    x2, y2 = uv.max(axis=0)
-    if image_size is not None:
-        bx1, by1, bx2, by2 = image_bounds(image_size)
-        x1, x2 = np.clip([x1, x2], bx1, bx2)
-        y1, y2 = np.clip([y1, y2], by1, by2)
-    if x2 <= x1 or y2 <= y1:
-        return None
-    return np.array([x1, y1, x2, y2])
+    return np.array([x1, y1, x2, y2], dtype=np.float64)

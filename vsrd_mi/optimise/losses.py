@@ -1,0 +1,159 @@
+"""Loss terms of the box optimisation (paper eq. 13-16, REFERENCE §3-4), in Dr.Jit.
+
+Every function is differentiable and works on flat Dr.Jit arrays; the matching, ray sampling
+and bookkeeping around them live in :mod:`vsrd_mi.optimise.optimiser`.
+"""
+
+from __future__ import annotations
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from vsrd_plugins.sdf import DecodedBoxes, InstanceField
+
+from ..geometry import boxes2d
+from ..geometry.boxes import CORNER_SIGNS
+from ..geometry.camera import NEAR_PLANE, footprint
+from ..geometry.xp import drjit_namespace
+
+
+def to_float(values) -> mi.Float:
+    """A Dr.Jit Float holding a copy of NumPy ``values`` in Dr.Jit-owned (aligned) memory.
+
+    ``mi.Float(ndarray)`` can use the NumPy buffer in place; its alignment then varies from call to
+    call and becomes part of the kernel hash, so every step recompiles (measured: ~17 kernel
+    misses and ~4 s of LLVM time per step; ``dr.copy`` did not always help). Building from a
+    Python list always allocates Dr.Jit memory.
+    """
+    return mi.Float(np.asarray(values, dtype=np.float32).ravel().tolist())
+
+
+def to_uint(values) -> mi.UInt32:
+    """UInt32 counterpart of :func:`to_float`."""
+    return mi.UInt32(np.asarray(values, dtype=np.int64).ravel().tolist())
+
+
+def huber(x, beta: float):
+    """Smooth L1 with transition ``beta``: ``0.5 x^2 / beta`` inside, ``|x| - beta / 2`` outside."""
+    ax = dr.abs(x)
+    return dr.select(ax < beta, 0.5 * x * x / beta, ax - 0.5 * beta)
+
+
+def binary_cross_entropy(p, y, eps: float):
+    """Per-element BCE of predictions ``p`` (clamped to ``[eps, 1 - eps]``) against targets ``y``."""
+    p = dr.clip(p, eps, 1.0 - eps)
+    return -(y * dr.log(p) + (1.0 - y) * dr.log(1.0 - p))
+
+
+def mean(x) -> mi.Float:
+    n = dr.width(x)
+    return dr.sum(x) / max(n, 1)
+
+
+class ProjectionLanes:
+    """The (frame, box) pairs supervised by the projection loss, as flat lane arrays.
+
+    Built from NumPy: ``box`` (L,) box index, ``dt`` (L,) frame offsets, ``world_to_cam`` (L, 4, 4)
+    optimisation frame -> camera, ``target`` (L, 4) mask boxes. All lanes share intrinsics ``K``
+    and image ``bounds``.
+    """
+
+    def __init__(self, box: np.ndarray, dt: np.ndarray, world_to_cam: np.ndarray,
+                 target: np.ndarray, K: np.ndarray, bounds: np.ndarray):
+        self.count = len(box)
+        self.box = to_uint(box)
+        self.dt = to_float(dt)
+        self.rot = [[to_float(world_to_cam[:, i, j]) for j in range(3)] for i in range(3)]
+        self.trans = [to_float(world_to_cam[:, i, 3]) for i in range(3)]
+        self.target = [to_float(target[:, i]) for i in range(4)]
+        self.K = np.asarray(K, dtype=np.float64)
+        self.bounds = tuple(float(b) for b in bounds)
+
+
+def box_corners(dec: DecodedBoxes, box: mi.UInt32, dt: mi.Float) -> list[tuple]:
+    """The 8 corners (optimisation frame, moved by ``dynamic * v * dt``) of boxes ``box``."""
+
+    def g(a):
+        return dr.gather(mi.Float, a, box)
+
+    m = g(dec.dynamic) * dt
+    centre = [g(dec.centre[j]) + m * g(dec.velocity[j]) for j in range(3)]
+    half = [g(h) for h in dec.half]
+    c, s = g(dec.cos), g(dec.sin)
+    corners = []
+    for sx, sy, sz in CORNER_SIGNS:
+        lx, ly, lz = sx * half[0], sy * half[1], sz * half[2]
+        corners.append((centre[0] + c * lx + s * lz, centre[1] + ly, centre[2] - s * lx + c * lz))
+    return corners
+
+
+def projected_boxes(dec: DecodedBoxes, lanes: ProjectionLanes):
+    """Differentiable 2D footprints ``(x1, y1, x2, y2, valid)`` of the lanes' boxes."""
+    corners = box_corners(dec, lanes.box, lanes.dt)
+    R, t = lanes.rot, lanes.trans
+    cam = [tuple(R[i][0] * p[0] + R[i][1] * p[1] + R[i][2] * p[2] + t[i] for i in range(3))
+           for p in corners]
+    return footprint(cam, lanes.K, lanes.bounds, NEAR_PLANE, xp=drjit_namespace())
+
+
+def projection_loss(dec: DecodedBoxes, lanes: ProjectionLanes, beta: float,
+                    w_huber: float, w_diou: float) -> mi.Float:
+    """Mean over lanes of ``w_huber * sum_4 Huber(pred - mask box) + w_diou * (1 - DIoU)``."""
+    if lanes.count == 0:
+        return mi.Float(0.0)
+    x1, y1, x2, y2, _ = projected_boxes(dec, lanes)
+    pred = (x1, y1, x2, y2)
+    h = huber(pred[0] - lanes.target[0], beta)
+    for i in range(1, 4):
+        h = h + huber(pred[i] - lanes.target[i], beta)
+    d = boxes2d.diou(pred, lanes.target, xp=dr)
+    return mean(w_huber * h + w_diou * (1.0 - d))
+
+
+def silhouette_loss(labels: list, targets: list, eps: float) -> mi.Float:
+    """Mean per-instance BCE of rendered labels against target masks (REFERENCE §3)."""
+    total = mi.Float(0.0)
+    for p, y in zip(labels, targets):
+        total = total + mean(binary_cross_entropy(p, y, eps))
+    return total / max(len(labels), 1)
+
+
+def init_loss(dec: DecodedBoxes, centre_init: np.ndarray, velocity_init: np.ndarray | None,
+              velocity_mask: np.ndarray | None) -> mi.Float:
+    """``sum_n |l_n - l_init|_1 + |v_n - v_init|_1`` (velocity only where ``velocity_mask``), / N."""
+    n = len(centre_init)
+    total = mi.Float(0.0)
+    for j in range(3):
+        total = total + dr.sum(dr.abs(dec.centre[j] - to_float(centre_init[:, j])))
+        if velocity_init is not None:
+            m = to_float(velocity_mask)
+            total = total + dr.sum(m * dr.abs(dec.velocity[j] - to_float(velocity_init[:, j])))
+    return total / max(n, 1)
+
+
+def eikonal_loss(field: InstanceField, dec: DecodedBoxes, weights, points_local: np.ndarray,
+                 step: float, reach: float) -> mi.Float:
+    """``mean (|grad F_k| - 1)^2`` at box-local sample points of every instance (central differences).
+
+    ``points_local`` is (N, P, 3) in units of each box's half-extents (in [-1, 1] and a bit beyond).
+    """
+    total = mi.Float(0.0)
+    n, p_count, _ = points_local.shape
+    zero = dr.zeros(mi.Float, p_count)
+    for k in range(n):
+        bv = field.view(dec, k, zero, p_count)
+        local = mi.Vector3f(*[to_float(points_local[k, :, j]) * bv.half[j]
+                              for j in range(3)])
+        base = bv.centre + bv.dir_to_world(local)
+        grad = []
+        for axis in range(3):
+            offs = [0.0, 0.0, 0.0]
+            offs[axis] = step
+            e = mi.Vector3f(*offs)
+            fp = field.instance_sdfs(dec, base + e, zero, weights, reach, instances=[k])[0]
+            fm = field.instance_sdfs(dec, base - e, zero, weights, reach, instances=[k])[0]
+            grad.append((fp - fm) / (2.0 * step))
+        norm = dr.safe_sqrt(grad[0] * grad[0] + grad[1] * grad[1] + grad[2] * grad[2])
+        total = total + mean((norm - 1.0) ** 2)
+    return total / max(n, 1)
