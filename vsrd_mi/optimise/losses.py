@@ -82,7 +82,7 @@ def box_corners(dec: DecodedBoxes, box: mi.UInt32, dt: mi.Float) -> list[tuple]:
     half = [g(h) for h in dec.half]
     c, s = g(dec.cos), g(dec.sin)
     corners = []
-    for sx, sy, sz in CORNER_SIGNS:
+    for sx, sy, sz in CORNER_SIGNS.tolist():  # Python floats: NumPy scalars would promote to Float64
         lx, ly, lz = sx * half[0], sy * half[1], sz * half[2]
         corners.append((centre[0] + c * lx + s * lz, centre[1] + ly, centre[2] - s * lx + c * lz))
     return corners
