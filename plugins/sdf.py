@@ -294,6 +294,41 @@ def _layer_norm_cols(x: mi.TensorXf, eps: float = 1e-5) -> mi.TensorXf:
     return xc / dr.sqrt(var + eps)
 
 
+def _layer_norm_features(x: mi.TensorXf, eps: float = 1e-5) -> mi.TensorXf:
+    """Parameter-free layer norm over axis 1 (features) of a (groups, features, n) tensor."""
+    g, _, n = x.shape
+    mean = _tensor(dr.mean(x, axis=1).array, (g, 1, n))
+    xc = x - mean
+    var = _tensor(dr.mean(xc * xc, axis=1).array, (g, 1, n))
+    return xc / dr.sqrt(var + eps)
+
+
+def concat(arrays: Sequence[mi.Float], width: int | None = None, stride: int | None = None) -> mi.Float:
+    """Concatenate Float arrays (differentiably) without baking sizes into kernels.
+
+    ``dr.concat`` compiles its offsets into the kernel, so concatenating arrays whose widths change
+    every call recompiles every call; here the offsets are opaque. With ``stride``, array ``i``
+    starts at ``i * stride`` (zero padding between), and the result has ``width`` lanes.
+    """
+    widths = [dr.width(a) for a in arrays]
+    starts = ([i * stride for i in range(len(arrays))] if stride is not None
+              else np.concatenate([[0], np.cumsum(widths)[:-1]]).astype(int).tolist())
+    total = width if width is not None else int(starts[-1] + widths[-1])
+    out = dr.zeros(mi.Float, total)
+    for a, w, s0 in zip(arrays, widths, starts):
+        dr.scatter(out, a, dr.arange(mi.UInt32, w) + dr.opaque(mi.UInt32, int(s0)))
+    return out
+
+
+#: Smallest padded group width of the batched residual MLP.
+MIN_BUCKET = 256
+
+
+def bucket_width(n: int) -> int:
+    """Padded width for ``n`` points: the next power of two, at least :data:`MIN_BUCKET`."""
+    return max(MIN_BUCKET, 1 << max(int(n) - 1, 0).bit_length())
+
+
 class ResidualField:
     """Hypernetwork-generated per-instance residual MLPs (see module docstring).
 
@@ -339,8 +374,8 @@ class ResidualField:
                 x = gelu(_layer_norm_cols(x))
         return x
 
-    def encode(self, p_local: mi.Vector3f) -> mi.TensorXf:
-        """Mirrored, scaled sinusoidal encoding of box-local points -> (48, n) tensor."""
+    def encode(self, p_local: mi.Vector3f) -> list[mi.Float]:
+        """Mirrored, scaled sinusoidal encoding of box-local points: 48 feature arrays."""
         cfg = self.cfg
         coords = [dr.abs(p_local.x) * cfg.input_scale, p_local.y * cfg.input_scale,
                   p_local.z * cfg.input_scale]
@@ -349,27 +384,54 @@ class ResidualField:
             for k in range(cfg.frequencies):
                 a = c * ((2.0 ** k) * math.pi)
                 feats += [dr.sin(a), dr.cos(a)]
-        n = dr.width(p_local.x)
-        return _tensor(dr.concat(feats), (len(feats), n))
+        return feats
 
     def evaluate(self, weights: mi.TensorXf, k: int, p_local: mi.Vector3f) -> mi.Float:
         """Residual ``R_k(p)`` (>= 0) at box-local points of instance ``k``."""
+        return self.evaluate_grouped(weights, [k], [p_local])[0]
+
+    def evaluate_grouped(self, weights: mi.TensorXf, instances: Sequence[int],
+                         points: Sequence[mi.Vector3f]) -> list[mi.Float]:
+        """Residuals ``R_k`` of several instances in one batched evaluation.
+
+        Group ``g`` holds box-local points ``points[g]`` of instance ``instances[g]``. The groups
+        are zero-padded to one width ``P`` (:func:`bucket_width` of the largest group) and the MLP
+        runs as one batched matmul ``(G, out, in) @ (G, in, P)`` per layer. Kernel shapes then
+        depend only on ``(G, P)``, so a training loop compiles each layer once per bucket instead
+        of once per step and instance (the point counts change every step).
+        """
         cfg = self.cfg
-        n = dr.width(p_local.x)
-        col = dr.gather(mi.Float, weights.array,
-                        dr.arange(mi.UInt32, cfg.num_mlp_params) * self.n + k)
-        x = self.encode(p_local)
+        widths = [dr.width(p.x) for p in points]
+        groups = len(widths)
+        width = bucket_width(max(widths))
+        # (G, P) point layout, zero padded
+        coords = [concat([p[axis] for p in points], groups * width, width) for axis in range(3)]
+        feats = self.encode(mi.Vector3f(*coords))
+        nf = len(feats)
+        # feature-major (F, G*P) -> batch-major (G, F, P)
+        idx = dr.arange(mi.UInt32, groups * nf * width)
+        g, rem = idx // (nf * width), idx % (nf * width)
+        f, q = rem // width, rem % width
+        x = _tensor(dr.gather(mi.Float, dr.concat(feats), f * (groups * width) + g * width + q),
+                    (groups, nf, width))
+        inst = mi.UInt32(list(instances))
         offset = 0
         shapes = cfg.mlp_shapes()
         for i, (o, fi) in enumerate(shapes):
-            w = _tensor(dr.gather(mi.Float, col, dr.arange(mi.UInt32, o * fi) + offset), (o, fi))
+            j = dr.arange(mi.UInt32, groups * o * fi)
+            src = (offset + j % (o * fi)) * self.n + dr.gather(mi.UInt32, inst, j // (o * fi))
+            w = _tensor(dr.gather(mi.Float, weights.array, src), (groups, o, fi))
             offset += o * fi
-            b = dr.gather(mi.Float, col, dr.arange(mi.UInt32, o) + offset)
+            j = dr.arange(mi.UInt32, groups * o)
+            src = (offset + j % o) * self.n + dr.gather(mi.UInt32, inst, j // o)
+            b = _tensor(dr.gather(mi.Float, weights.array, src), (groups, o, 1))
             offset += o
-            x = w @ x + _tensor(dr.repeat(b, n), (o, n))
+            x = w @ x + b
             if i < len(shapes) - 1:
-                x = gelu(_layer_norm_cols(x))
-        return cfg.max_residual * sigmoid(x.array - cfg.shift)
+                x = gelu(_layer_norm_features(x))
+        out = cfg.max_residual * sigmoid(x.array - cfg.shift)
+        return [dr.gather(mi.Float, out, dr.arange(mi.UInt32, n) + gi * width)
+                for gi, n in enumerate(widths)]
 
 
 # ----------------------------------------------------------------------------------------------
@@ -495,22 +557,28 @@ class InstanceField:
         residual can only raise an SDF that is already ``>= reach`` and is skipped.
         """
         width = dr.width(p.x)
-        out = []
-        for k in (range(self.n) if instances is None else instances):
+        ks = list(range(self.n) if instances is None else instances)
+        out, local, idxs = [], [], []
+        for k in ks:
             bv = self.view(dec, k, time, width)
             pl = bv.to_local(p)
-            f = box_sdf_local(pl, bv.half)
+            out.append(box_sdf_local(pl, bv.half))
             if weights is not None:
                 with dr.suspend_grad():
                     inside = dr.all(dr.abs(pl) <= bv.half + reach)
-                idx = dr.compress(inside)
-                if dr.width(idx) > 0:
-                    pk = mi.Vector3f(*[dr.gather(mi.Float, c, idx) for c in (pl.x, pl.y, pl.z)])
-                    r = self.residual.evaluate(weights, k, pk)
-                    extra = dr.zeros(mi.Float, width)
-                    dr.scatter_add(extra, r, idx)
-                    f = f + extra
-            out.append(f)
+                idxs.append(dr.compress(inside))
+                local.append(pl)
+        if weights is None:
+            return out
+        live = [i for i, idx in enumerate(idxs) if dr.width(idx) > 0]
+        if not live:
+            return out
+        pts = [mi.Vector3f(*[dr.gather(mi.Float, c, idxs[i]) for c in local[i]]) for i in live]
+        res = self.residual.evaluate_grouped(weights, [ks[i] for i in live], pts)
+        for i, r in zip(live, res):
+            extra = dr.zeros(mi.Float, width)
+            dr.scatter_add(extra, r, idxs[i])
+            out[i] = out[i] + extra
         return out
 
 

@@ -93,7 +93,7 @@ from dataclasses import dataclass
 import drjit as dr
 import mitsuba as mi
 
-from .sdf import (InstanceField, box_sdf_local, ray_box_interval, scene_sdf, softmin_labels,
+from .sdf import (InstanceField, box_sdf_local, concat, ray_box_interval, scene_sdf, softmin_labels,
                   softplus)
 
 GOLDEN = 0.6180339887498949
@@ -214,18 +214,24 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
             groups = [(dr.arange(mi.UInt32, n_rays), t, m, mi.Bool(True))]
         else:
             groups = self._adaptive_groups(dec, o, d, time)
+        groups = list(groups)
         out = [dr.zeros(mi.Float, n_rays) for _ in range(self.field.n)]
-        stats = {"rays": 0, "samples": 0, "sdf_evals": 0}
-        for ray_idx, t, m, active in groups:
-            labels = self._integrate(dec, ray_idx, o, d, time, t, m)
+        self.last_stats = {"rays": 0, "samples": 0, "sdf_evals": 0}
+        if not groups:
+            return out + [dr.ones(mi.Float, n_rays)]
+        # one SDF evaluation for the samples of every group (the residual MLP then runs once)
+        pos = [self._positions(ray_idx, o, d, time, t, m) for ray_idx, t, m, _ in groups]
+        sdfs = self._sdfs(dec, pos)
+        for (ray_idx, t, m, active), sdf in zip(groups, sdfs):
+            labels = self._integrate(sdf, m)
             for k, lab in enumerate(labels):
                 if self.cfg.sampling == "dense":
                     out[k] = lab
                 else:
                     dr.scatter_add(out[k], lab, ray_idx, active)
-            for key in stats:
-                stats[key] += self.last_stats[key]
-        self.last_stats = stats
+            n = dr.width(ray_idx)
+            for key, v in (("rays", n), ("samples", n * m), ("sdf_evals", n * m * self.field.n)):
+                self.last_stats[key] += v
         total = out[0]
         for lab in out[1:]:
             total = total + lab
@@ -235,25 +241,49 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         """Band half-width / culling margin in scene units."""
         return self.cfg.reach / self.sharpness
 
-    def _integrate(self, dec, ray_idx: mi.UInt32, o, d, time, t: mi.Float, m: int) -> list[mi.Float]:
-        """Differentiable NeuS integral over ``m`` sorted samples per ray of ``ray_idx``."""
+    @staticmethod
+    def _positions(ray_idx: mi.UInt32, o, d, time, t: mi.Float, m: int):
+        """Sample points ``o + t d`` and their ray times for ``m`` samples per ray (detached)."""
         n = dr.width(ray_idx)
-        lane = dr.arange(mi.UInt32, n * m)
         with dr.suspend_grad():
-            r = dr.gather(mi.UInt32, ray_idx, lane // m)
-            og = dr.gather(mi.Point3f, o, r)
-            dg = dr.gather(mi.Vector3f, d, r)
-            tg = dr.gather(mi.Float, time, r)
-            p = og + t * dg
-            last = (lane % m) == (m - 1)
-            nxt = dr.select(last, lane, lane + 1)
-        weights = self.field.residual_weights()
+            r = dr.gather(mi.UInt32, ray_idx, dr.arange(mi.UInt32, n * m) // m)
+            return dr.gather(mi.Point3f, o, r) + t * dr.gather(mi.Vector3f, d, r), dr.gather(mi.Float, time, r)
+
+    def _sdfs(self, dec, pos: list) -> list[list[mi.Float]]:
+        """Instance SDFs at the sample points of every group, evaluated in one batch."""
+        widths = [dr.width(p.x) for p, _ in pos]
+        if len(pos) == 1:
+            p, tg = pos[0]
+        else:
+            with dr.suspend_grad():
+                p = mi.Point3f(*[concat([q[j] for q, _ in pos]) for j in range(3)])
+                tg = concat([tt for _, tt in pos])
         # an opaque Float, not a Python float: a literal would recompile whenever s changes
         reach = dr.detach(self._reach()) + self.field.residual_reach
-        sdfs = self.field.instance_sdfs(dec, p, tg, weights, reach=reach)
+        sdfs = self.field.instance_sdfs(dec, p, tg, self.field.residual_weights(), reach=reach)
+        if len(pos) == 1:
+            return [sdfs]
+        out, start = [], 0
+        for w in widths:
+            idx = dr.arange(mi.UInt32, w) + dr.opaque(mi.UInt32, start)
+            out.append([dr.gather(mi.Float, f, idx) for f in sdfs])
+            start += w
+        return out
+
+    def integrate_at(self, dec, ray_idx: mi.UInt32, o, d, time, t: mi.Float, m: int) -> list[mi.Float]:
+        """Labels of rays ``ray_idx`` from the NeuS integral at given sorted samples ``t``
+        (``m`` per ray): the integral both strategies use, for references and tests."""
+        return self._integrate(self._sdfs(dec, [self._positions(ray_idx, o, d, time, t, m)])[0], m)
+
+    def _integrate(self, sdfs: list[mi.Float], m: int) -> list[mi.Float]:
+        """Differentiable NeuS integral of instance SDFs at ``m`` sorted samples per ray."""
+        n = dr.width(sdfs[0]) // m
+        with dr.suspend_grad():
+            lane = dr.arange(mi.UInt32, n * m)
+            last = (lane % m) == (m - 1)
+            nxt = dr.select(last, lane, lane + 1)
         f = scene_sdf(sdfs)
         labels = softmin_labels(sdfs, self.temperature)
-        self.last_stats = {"rays": n, "samples": n * m, "sdf_evals": n * m * self.field.n}
         s = self.sharpness
         f_next = dr.gather(mi.Float, f, nxt)
         log1ma = dr.minimum(softplus(-s * f) - softplus(-s * f_next), 0.0)

@@ -172,3 +172,63 @@ def test_residual_added_only_near_the_box():
     d = f_res - f_box
     assert np.all(d[:2] > 0) and np.all(d[:2] <= 1.0)
     assert d[2] == 0.0  # far outside the enlarged box: skipped
+
+
+def np_residual(rdf, k: int, p: np.ndarray) -> np.ndarray:
+    """The residual of instance ``k`` written out in NumPy from the raw parameters (float64)."""
+    cfg = rdf.cfg
+    prm = {key: np.array(v, dtype=np.float64) for key, v in rdf.params.items()}
+    x = prm["embedding"].reshape(rdf.n, cfg.embedding_dim)[k]
+    dims = [cfg.embedding_dim] + [cfg.hyper_width] * cfg.hyper_layers + [cfg.num_mlp_params]
+
+    def gelu(v):  # tanh approximation, as the module documents
+        return 0.5 * v * (1.0 + np.tanh(np.sqrt(2.0 / np.pi) * (v + 0.044715 * v ** 3)))
+
+    def norm(v, axis):
+        m = v.mean(axis=axis, keepdims=True)
+        return (v - m) / np.sqrt(((v - m) ** 2).mean(axis=axis, keepdims=True) + 1e-5)
+
+    for i in range(len(dims) - 1):
+        x = prm[f"hyper_w{i}"].reshape(dims[i + 1], dims[i]) @ x + prm[f"hyper_b{i}"]
+        if i < len(dims) - 2:
+            x = gelu(norm(x, 0))
+    q = np.stack([np.abs(p[:, 0]), p[:, 1], p[:, 2]], 0) * cfg.input_scale  # (3, n)
+    feats = []
+    for c in q:
+        for f in range(cfg.frequencies):
+            feats += [np.sin(c * 2.0 ** f * np.pi), np.cos(c * 2.0 ** f * np.pi)]
+    h = np.stack(feats, 0)
+    off = 0
+    shapes = cfg.mlp_shapes()
+    for i, (o, fi) in enumerate(shapes):
+        w = x[off:off + o * fi].reshape(o, fi)
+        off += o * fi
+        h = w @ h + x[off:off + o, None]
+        off += o
+        if i < len(shapes) - 1:
+            h = gelu(norm(h, 0))
+    return cfg.max_residual / (1.0 + np.exp(-(h[0] - cfg.shift)))
+
+
+def test_batched_residual_matches_numpy_per_instance():
+    """Groups of different sizes (padded to one bucket) give each instance its own MLP."""
+    rng = np.random.default_rng(11)
+    centres, sizes, yaws = random_boxes(rng, 3)
+    field = InstanceField(props_of({**instance_properties(centres, sizes, yaws), "residual": True}))
+    rdf = field.residual
+    for key in rdf.params:  # non-trivial weights so instances differ visibly
+        rdf.params[key] = mi.Float(np.array(rdf.params[key]) * 3.0)
+    w = field.residual_weights()
+    pts = [rng.uniform(-2.5, 2.5, (n, 3)) for n in (5, 300, 37)]
+    out = rdf.evaluate_grouped(w, [2, 0, 1], [vec(p) for p in pts])
+    for k, p, r in zip([2, 0, 1], pts, out):
+        assert dr.width(r) == len(p)
+        np.testing.assert_allclose(np.array(r), np_residual(rdf, k, p), atol=2e-4)
+    assert np.abs(np.array(out[1])[:37] - np_residual(rdf, 1, pts[1][:37])).max() > 1e-3
+
+
+def test_bucket_width():
+    from vsrd_plugins.sdf import MIN_BUCKET, bucket_width
+    assert bucket_width(1) == MIN_BUCKET
+    assert bucket_width(MIN_BUCKET + 1) == 2 * MIN_BUCKET
+    assert bucket_width(4096) == 4096 and bucket_width(4097) == 8192

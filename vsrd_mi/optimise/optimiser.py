@@ -246,7 +246,7 @@ class BoxOptimiser:
             l_eik = l_init = mi.Float(0.0)
             if residual_on and w.eikonal > 0:
                 l_eik = losses.eikonal_loss(it.field, dec, it.field.residual_weights(), self.eik_points,
-                                            cfg.eikonal_step, float(dr.detach(it._reach())[0]) + it.field.residual_reach)
+                                            cfg.eikonal_step)
                 total = total + w.eikonal * l_eik
             if centre_init is not None and w.init > 0:
                 l_init = losses.init_loss(dec, centre_init, vel_init if opt_vel is not None else None,
