@@ -32,8 +32,19 @@ from .optimiser import BoxOptimiser
 
 
 def box_in_frame(box: Box3D, obs: Observations, f: int) -> Box3D:
-    """Box (optimisation frame, target time) expressed in frame ``f``'s camera at its time."""
+    """Box (optimisation frame, target time) expressed in frame ``f``'s camera at its time.
+
+    The camera may be pitched: the result keeps only the heading's yaw about the camera's y
+    axis (what a KITTI label can hold). Project with :func:`footprint_in_frame`, not this box.
+    """
     return box.at_offset(float(obs.dt[f])).transformed(np.linalg.inv(obs.cam_to_opt[f]))
+
+
+def footprint_in_frame(box: Box3D, obs: Observations, f: int) -> np.ndarray | None:
+    """2D footprint of the box (optimisation frame, target time) in frame ``f``'s image: the
+    exact projection through the full camera pose (a pitched camera included)."""
+    return box_to_2d(box, obs.K[f], world_to_cam=np.linalg.inv(obs.cam_to_opt[f]),
+                     image_size=obs.image_size, dt=float(obs.dt[f]))
 
 
 def confidence(boxes: list[Box3D], obs: Observations) -> np.ndarray:
@@ -45,7 +56,7 @@ def confidence(boxes: list[Box3D], obs: Observations) -> np.ndarray:
     for f in frames:
         pred = np.zeros((n, 4))  # boxes outside the image keep an empty box (IoU 0)
         for i, b in enumerate(boxes):
-            b2 = box_to_2d(box_in_frame(b, obs, f), obs.K[f], image_size=obs.image_size)
+            b2 = footprint_in_frame(b, obs, f)
             if b2 is not None:
                 pred[i] = b2
         masks = np.nan_to_num(obs.boxes2d[f], nan=-1e4)
@@ -90,7 +101,7 @@ def process_target(task: TargetTask) -> TargetResult:
         labels = []
         for b, c in zip(result.boxes, conf):
             bc = box_in_frame(b, obs, f)
-            b2 = box_to_2d(bc, obs.K[f], image_size=obs.image_size)
+            b2 = footprint_in_frame(b, obs, f)
             if b2 is not None:
                 labels.append(label_from_box(bc, b2, score=float(c)))
         rel = f"labels/{int(obs.frames[f]):010d}.txt"
