@@ -12,6 +12,10 @@ import dataclasses
 from dataclasses import dataclass, field
 
 
+#: Forms of the projection loss (see :func:`vsrd_mi.optimise.losses.projection_loss`).
+PROJECTION_MODES = ("symmetric", "containment")
+
+
 @dataclass(frozen=True)
 class LossWeights:
     """Loss weights (paper §IV-B: alpha = 1, beta = 0.1, lambda_slh = 1, lambda_eik = 0.01, lambda_init = 0.1)."""
@@ -23,8 +27,15 @@ class LossWeights:
     init: float = 0.1
     #: Huber (smooth L1) transition, pixels.
     huber_beta: float = 1.0
+    #: Projection loss form: "symmetric" (the paper) or "containment" (only mask-box parts outside
+    #: the projected box count; see :func:`vsrd_mi.optimise.losses.projection_loss`).
+    projection_mode: str = "symmetric"
     #: Rendered labels are clamped to [eps, 1 - eps] inside the BCE.
     bce_eps: float = 1e-6
+
+    def __post_init__(self) -> None:
+        if self.projection_mode not in PROJECTION_MODES:
+            raise ValueError(f"projection_mode must be one of {PROJECTION_MODES}, got {self.projection_mode!r}")
 
 
 @dataclass(frozen=True)

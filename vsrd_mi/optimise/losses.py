@@ -98,17 +98,34 @@ def projected_boxes(dec: DecodedBoxes, lanes: ProjectionLanes):
 
 
 def projection_loss(dec: DecodedBoxes, lanes: ProjectionLanes, beta: float,
-                    w_huber: float, w_diou: float) -> mi.Float:
-    """Mean over lanes of ``w_huber * sum_4 Huber(pred - mask box) + w_diou * (1 - DIoU)``."""
+                    w_huber: float, w_diou: float, containment: bool = False) -> mi.Float:
+    """Mean over lanes of ``w_huber * sum_4 Huber(e_i) + w_diou * (1 - DIoU)``.
+
+    ``symmetric`` (the paper, ``containment=False``): ``e = pred - mask box`` per coordinate.
+    ``containment=True``: only the part of the mask box that sticks out of the projected box
+    counts, ``e = max(0, x1p - x1m), max(0, y1p - y1m), max(0, x2m - x2p), max(0, y2m - y2p)``:
+    a box that contains the object projects to a rectangle containing the mask's box, but not
+    onto it (an object is not a box: its silhouette is smaller than its box's footprint), so the
+    symmetric loss pulls boxes smaller -- and, for moving cars whose depth trades off against
+    velocity, farther away.
+    """
     if lanes.count == 0:
         return mi.Float(0.0)
     x1, y1, x2, y2, _ = projected_boxes(dec, lanes)
     pred = (x1, y1, x2, y2)
-    h = huber(pred[0] - lanes.target[0], beta)
-    for i in range(1, 4):
-        h = h + huber(pred[i] - lanes.target[i], beta)
-    d = boxes2d.diou(pred, lanes.target, xp=dr)
-    return mean(w_huber * h + w_diou * (1.0 - d))
+    tgt = lanes.target
+    if containment:
+        errs = [dr.maximum(x1 - tgt[0], 0.0), dr.maximum(y1 - tgt[1], 0.0),
+                dr.maximum(tgt[2] - x2, 0.0), dr.maximum(tgt[3] - y2, 0.0)]
+    else:
+        errs = [pred[i] - tgt[i] for i in range(4)]
+    h = huber(errs[0], beta)
+    for e in errs[1:]:
+        h = h + huber(e, beta)
+    total = w_huber * h
+    if w_diou > 0:
+        total = total + w_diou * (1.0 - boxes2d.diou(pred, tgt, xp=dr))
+    return mean(total)
 
 
 def silhouette_loss(labels: list, targets: list, eps: float) -> mi.Float:

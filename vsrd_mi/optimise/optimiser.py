@@ -240,7 +240,8 @@ class BoxOptimiser:
             labels = it.render_rays(o, d, t)[:-1]
             sdf_evals += it.last_stats.get("sdf_evals", 0)
             w = cfg.weights
-            l_proj = losses.projection_loss(dec, self._lanes, w.huber_beta, w.projection_huber, w.projection_diou)
+            l_proj = losses.projection_loss(dec, self._lanes, w.huber_beta, w.projection_huber, w.projection_diou,
+                                            containment=w.projection_mode == "containment")
             l_sil = losses.silhouette_loss(labels, targets, w.bce_eps)
             total = l_proj + w.silhouette * l_sil
             l_eik = l_init = mi.Float(0.0)
