@@ -84,7 +84,9 @@ def initial_boxes(seq: Sequence, spec, obs: Observations, cfg: AutolabelConfig):
 
 def process_target(task: TargetTask) -> TargetResult:
     """Batch job: autolabel ``task.frame`` of ``task.sequence`` (see module docstring)."""
-    cfg = AutolabelConfig.from_dict(task.config) if task.config else PRESETS["default"]()
+    config = dict(task.config)
+    vis = bool(config.pop("vis", False))  # visual outputs: not an optimisation setting
+    cfg = AutolabelConfig.from_dict(config) if config else PRESETS["default"]()
     cfg = cfg.replace(seed=int(task.seed))
     seq = Sequence(task.root, task.sequence)
     spec = spec_for_frame(seq, task.frame, SelectionConfig())
@@ -92,7 +94,8 @@ def process_target(task: TargetTask) -> TargetResult:
     if obs.num_instances == 0:
         return TargetResult(status="skipped", seconds=0.0, outputs=(), error="no target instances")
     start, init_ref, note = initial_boxes(seq, spec, obs, cfg)
-    result = BoxOptimiser(obs, start, cfg, init_boxes=init_ref).run()
+    optimiser = BoxOptimiser(obs, start, cfg, init_boxes=init_ref)
+    result = optimiser.run()
     conf = confidence(result.boxes, obs)
     out = task.sequence_dir
     outputs = []
@@ -119,6 +122,12 @@ def process_target(task: TargetTask) -> TargetResult:
     rel = f"boxes/{int(task.frame):010d}.json"
     atomic_write_json(out / rel, summary)
     outputs.append(rel)
+    if vis:  # after the labels; a failing visual is a warning in the JSON, never a failed target
+        from ..export.visualise import write_visuals
+        report = write_visuals(out / "vis" / f"{int(task.frame):010d}", seq, optimiser, result, conf)
+        summary["visuals"] = report.to_dict(relative_to=out)
+        atomic_write_json(out / rel, summary)
+        outputs.extend(summary["visuals"]["files"])
     return TargetResult(status="done", seconds=result.seconds, outputs=tuple(outputs))
 
 
@@ -143,7 +152,8 @@ def _cmd_autolabel(args: argparse.Namespace) -> int:
     print(f"{seq.name}: {len(specs)} target frame(s)" + "".join(
         f"\n  target {s.target}: {len(s.sources)} sources" + (f" ({s.note})" if s.note else "") for s in specs))
     tasks = [TargetTask(root=str(Path(args.root).resolve()), sequence=seq.name, frame=s.target,
-                        output_dir=str(Path(args.out).resolve()), config=cfg.to_dict(), seed=args.seed)
+                        output_dir=str(Path(args.out).resolve()),
+                        config={**cfg.to_dict(), **({"vis": True} if args.vis else {})}, seed=args.seed)
              for s in specs]
     summary = run_batch(tasks, process_target, **executor_kwargs(args))
     print(f"done {summary.done}, skipped {summary.skipped}, failed {summary.failed} of {summary.total}")
@@ -164,5 +174,8 @@ def register(subparsers) -> None:
     p.add_argument("--no-velocity", action="store_true")
     p.add_argument("--no-init", action="store_true")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--vis", action="store_true",
+                   help="also write visual checks (projected boxes, masks, BEV, losses, meshes) "
+                        "under OUT/SEQ/vis/<target>/")
     add_executor_arguments(p)
     p.set_defaults(func=_cmd_autolabel)
