@@ -24,6 +24,10 @@ def temp_prefix(path: str | os.PathLike) -> str:
     return f".{Path(path).name}."
 
 
+#: Permissions of written outputs (``mkstemp`` would leave them owner-only).
+FILE_MODE = 0o644
+
+
 def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
     """Write ``data`` to ``path`` atomically (creating parent directories); return the path."""
     path = Path(path)
@@ -34,6 +38,7 @@ def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
             f.write(data)
             f.flush()
             os.fsync(f.fileno())
+        os.chmod(tmp_name, FILE_MODE)
         os.replace(tmp_name, path)
     except BaseException:
         try:

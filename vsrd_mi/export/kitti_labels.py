@@ -15,13 +15,13 @@ from __future__ import annotations
 
 import math
 import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterable, Sequence
 
 import numpy as np
 
+from ..batch.atomic import atomic_write_text
 from ..errors import DataError
 from ..geometry.boxes import Box3D, kitti_ry_from_yaw, wrap_angle, yaw_from_kitti_ry
 
@@ -36,8 +36,6 @@ DEFAULT_DECIMALS = 6
 #: KITTI class name of cars, the only class vsrd-mi labels and evaluates.
 CAR = "Car"
 
-#: Permissions of written label files (``tempfile`` would leave them owner-only).
-FILE_MODE = 0o644
 
 #: ``truncated`` / ``occluded`` written for pseudo labels (not estimated; 0 = fully visible).
 DEFAULT_TRUNCATED = 0.0
@@ -132,40 +130,13 @@ def write_labels(path: str | os.PathLike, labels: Iterable[KittiLabel],
                  decimals: int = DEFAULT_DECIMALS) -> None:
     """Write a label file atomically.
 
-    The lines go to a temporary file in the destination directory (created if missing), which is
-    flushed, fsync'ed and then renamed over ``path`` with :func:`os.replace` (the directory is
-    fsync'ed afterwards), so readers see either the old file or the complete new one. An empty ``labels`` writes an empty file (no objects).
+    Through :func:`vsrd_mi.batch.atomic.atomic_write_text` (temporary file in the destination
+    directory, fsync, :func:`os.replace`, directory fsync), so readers see either the old file or
+    the complete new one. An empty ``labels`` writes an empty file (no objects).
     """
     path = Path(path)
     text = "".join(format_label_line(lab, decimals) + "\n" for lab in labels)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w", encoding="ascii") as f:
-            f.write(text)
-            f.flush()
-            os.fsync(f.fileno())
-        os.chmod(tmp, FILE_MODE)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-    _fsync_directory(path.parent)
-
-
-def _fsync_directory(directory: Path) -> None:
-    """Persist a rename in ``directory`` (POSIX; a no-op where directories cannot be opened)."""
-    try:
-        fd = os.open(directory, os.O_RDONLY)
-    except OSError:
-        return
-    try:
-        os.fsync(fd)
-    except OSError:
-        pass  # some file systems do not support fsync on directories; the rename is still atomic
-    finally:
-        os.close(fd)
+    atomic_write_text(path, text, encoding="ascii")
 
 
 def observation_angle(ry: float, x: float, z: float) -> float:
