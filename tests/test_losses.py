@@ -1,0 +1,575 @@
+"""Loss terms, matching, schedules, early stop, label export and the optimiser's skip switches.
+
+Loss values are checked against numbers computed by hand (or by an independent NumPy projection
+of the box corners), gradients against central finite differences. The optimiser-level checks run
+the real :class:`BoxOptimiser` on the bundled scene (target frame 14, ground-truth boxes) for a
+few cheap steps, with spies on the residual field, the Adam optimisers and their learning rates.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass
+
+import numpy as np
+import pytest
+
+import vsrd_mi  # noqa: F401  (selects the Mitsuba variant, registers the plugins)
+import drjit as dr
+import mitsuba as mi
+
+from vsrd_plugins.sdf import InstanceField, ResidualField, instance_properties
+from vsrd_plugins.silhouette import VSRDSilhouetteIntegrator
+from vsrd_mi.export.kitti_labels import label_from_box, write_labels
+from vsrd_mi.geometry import boxes2d
+from vsrd_mi.geometry.boxes import Box3D
+from vsrd_mi.optimise import losses
+from vsrd_mi.optimise.config import default_config
+from vsrd_mi.optimise.losses import to_float
+from vsrd_mi.optimise.optimiser import BoxOptimiser, Convergence, cosine
+
+SCENE_ROOT = os.path.join(os.path.dirname(__file__), "..", "scenes", "kitti360-synth")
+TARGET_FRAME = 14
+
+
+def values(x) -> np.ndarray:
+    return np.array(dr.detach(x), dtype=np.float64)
+
+
+def field_of(centres, sizes, yaws, velocities=None, dynamic=None, **extra) -> InstanceField:
+    p = mi.Properties()
+    for k, v in {**instance_properties(centres, sizes, yaws, velocities, dynamic), **extra}.items():
+        p[k] = v
+    return InstanceField(p)
+
+
+# ----------------------------------------------------------------------------------------------
+# elementary terms
+# ----------------------------------------------------------------------------------------------
+
+
+def test_huber_both_branches():
+    x = to_float([0.5, -0.25, 1.0, 3.0, -3.0, 0.0])
+    # inside |x| < 1: x^2 / 2; outside: |x| - 1/2 (both 0.5 at the transition)
+    np.testing.assert_allclose(values(losses.huber(x, 1.0)), [0.125, 0.03125, 0.5, 2.5, 2.5, 0.0], rtol=1e-7)
+    # beta = 2: x^2 / 4 inside, |x| - 1 outside
+    np.testing.assert_allclose(values(losses.huber(to_float([1.0, -3.0, 2.0]), 2.0)), [0.25, 2.0, 1.0], rtol=1e-7)
+
+
+def test_bce_with_clamping_values_and_gradients():
+    eps = 1e-6
+    p = to_float([0.0, 1.0, 0.3, 1e-9, 0.999999999, 0.6])
+    y = to_float([1.0, 1.0, 0.8, 0.0, 0.0, 0.0])
+    dr.enable_grad(p)
+    bce = losses.binary_cross_entropy(p, y, eps)
+    dr.backward(dr.sum(bce))
+    one_minus_eps = float(np.float32(1.0 - eps))  # the clamp bound as float32 holds it
+    expected = [-math.log(eps), -math.log(one_minus_eps), -(0.8 * math.log(0.3) + 0.2 * math.log(0.7)),
+                -math.log(one_minus_eps), -math.log(1.0 - one_minus_eps), -math.log(0.4)]
+    np.testing.assert_allclose(values(bce), expected, rtol=2e-6, atol=1e-8)
+    # clamped predictions get no gradient; inside, dBCE/dp = -(y / p - (1 - y) / (1 - p))
+    grad = values(dr.grad(p))
+    np.testing.assert_array_equal(grad[[0, 1, 3, 4]], 0.0)
+    np.testing.assert_allclose(grad[[2, 5]], [-(0.8 / 0.3 - 0.2 / 0.7), 1.0 / 0.4], rtol=1e-5)
+
+
+@pytest.mark.parametrize("xp", ["numpy", "drjit"])
+def test_diou_of_known_boxes(xp):
+    a = [(0, 0, 2, 2), (0, 0, 2, 2), (0, 0, 1, 1), (0, 0, 4, 2)]
+    b = [(1, 1, 3, 3), (0, 0, 2, 2), (3, 0, 4, 1), (1, 0.5, 3, 1.5)]
+    # overlap 1 / union 7, centres (1,1)-(2,2): d^2 = 2, enclosing 3x3: diag^2 = 18 -> 1/7 - 1/9
+    # identical -> 1; disjoint: IoU 0, d^2 = 9, enclosing 4x1: 17 -> -9/17
+    # b inside a (area 2 of 8): IoU 1/4, centres (2,1)-(2,1): 1/4
+    expected = [1 / 7 - 1 / 9, 1.0, -9 / 17, 0.25]
+    cols_a = [np.array([box[i] for box in a], dtype=np.float64) for i in range(4)]
+    cols_b = [np.array([box[i] for box in b], dtype=np.float64) for i in range(4)]
+    if xp == "numpy":
+        got = boxes2d.diou(cols_a, cols_b, xp=np)
+    else:
+        got = values(boxes2d.diou([to_float(c) for c in cols_a], [to_float(c) for c in cols_b], xp=dr))
+    np.testing.assert_allclose(got, expected, rtol=1e-6, atol=1e-7)
+
+
+# ----------------------------------------------------------------------------------------------
+# projection loss
+# ----------------------------------------------------------------------------------------------
+
+K = np.array([[500.0, 0.0, 320.0], [0.0, 500.0, 240.0], [0.0, 0.0, 1.0]])
+IMAGE_BOUNDS = np.array([-0.5, -0.5, 639.5, 479.5])
+BETA = 1.0
+W_HUBER, W_DIOU = 1.0, 0.1
+
+
+def np_footprint(centre, size, yaw, world_to_cam) -> np.ndarray:
+    """Independent footprint: all 8 corners in front of the camera, projected, min/max."""
+    c, s = math.cos(yaw), math.sin(yaw)
+    R = np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])
+    signs = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], dtype=float)
+    pts = centre + (signs * 0.5 * np.asarray(size)) @ R.T
+    cam = pts @ world_to_cam[:3, :3].T + world_to_cam[:3, 3]
+    assert np.all(cam[:, 2] > 1.0)
+    uv = cam @ K.T
+    uv = uv[:, :2] / uv[:, 2:]
+    return np.array([uv[:, 0].min(), uv[:, 1].min(), uv[:, 0].max(), uv[:, 1].max()])
+
+
+def np_diou(a, b) -> float:
+    iw = max(min(a[2], b[2]) - max(a[0], b[0]), 0.0)
+    ih = max(min(a[3], b[3]) - max(a[1], b[1]), 0.0)
+    inter = iw * ih
+    union = (a[2] - a[0]) * (a[3] - a[1]) + (b[2] - b[0]) * (b[3] - b[1]) - inter
+    dx = 0.5 * (a[0] + a[2] - b[0] - b[2])
+    dy = 0.5 * (a[1] + a[3] - b[1] - b[3])
+    ex = max(a[2], b[2]) - min(a[0], b[0])
+    ey = max(a[3], b[3]) - min(a[1], b[1])
+    return inter / union - (dx * dx + dy * dy) / (ex * ex + ey * ey)
+
+
+def np_huber(e) -> float:
+    return float(sum(0.5 * x * x / BETA if abs(x) < BETA else abs(x) - 0.5 * BETA for x in e))
+
+
+def straight_ahead():
+    """One box 10 m straight ahead of the camera, its decoded parameters and a mask box."""
+    centre, size = np.array([0.5, 0.2, 10.0]), np.array([2.0, 1.6, 4.0])
+    field = field_of(centre[None], size[None], np.zeros(1))
+    return field, centre, size
+
+
+def test_projection_of_a_box_straight_ahead_by_hand():
+    field, centre, size = straight_ahead()
+    b = field.numpy_boxes()
+    np.testing.assert_allclose(b["centres"][0], centre, atol=2e-5)
+    np.testing.assert_allclose(b["sizes"][0], size, atol=2e-6)
+    lanes = losses.ProjectionLanes(np.array([0]), np.zeros(1), np.eye(4)[None], np.zeros((1, 4)), K, IMAGE_BOUNDS)
+    x1, y1, x2, y2, valid = losses.projected_boxes(field.decode(), lanes)
+    # corners x in {-0.5, 1.5}, y in {-0.6, 1.0}, nearest face z = 8: u = 500 x / 8 + 320, v = 500 y / 8 + 240
+    by_hand = [320 - 500 * 0.5 / 8, 240 - 500 * 0.6 / 8, 320 + 500 * 1.5 / 8, 240 + 500 * 1.0 / 8]
+    assert by_hand == [288.75, 202.5, 413.75, 302.5]
+    got = np.array([values(v)[0] for v in (x1, y1, x2, y2)])
+    np.testing.assert_allclose(got, by_hand, atol=2e-3)
+    np.testing.assert_allclose(got, np_footprint(b["centres"][0], b["sizes"][0], 0.0, np.eye(4)), atol=2e-4)
+    assert bool(values(valid)[0])
+
+
+@pytest.mark.parametrize("containment", [False, True])
+def test_projection_loss_by_hand(containment):
+    field, _, _ = straight_ahead()
+    b = field.numpy_boxes()
+    pred = np_footprint(b["centres"][0], b["sizes"][0], 0.0, np.eye(4))  # ~ (288.75, 202.5, 413.75, 302.5)
+    mask = np.array([289.25, 200.0, 410.5, 305.0])
+    if containment:  # only the mask box's parts outside the projected box: 0, 2.5, 0, 2.5
+        err = [max(pred[0] - mask[0], 0.0), max(pred[1] - mask[1], 0.0),
+               max(mask[2] - pred[2], 0.0), max(mask[3] - pred[3], 0.0)]
+        hand = 2.0 + 2.0
+    else:  # errors -0.5 (quadratic branch), 2.5, 3.25, -2.5 (linear): 0.125 + 2 + 2.75 + 2
+        err = list(pred - mask)
+        hand = 6.875
+    assert np_huber(err) == pytest.approx(hand, abs=2e-3)
+    expected = W_HUBER * np_huber(err) + W_DIOU * (1.0 - np_diou(pred, mask))
+    lanes = losses.ProjectionLanes(np.array([0]), np.zeros(1), np.eye(4)[None], mask[None], K, IMAGE_BOUNDS)
+    got = values(losses.projection_loss(field.decode(), lanes, BETA, W_HUBER, W_DIOU, containment=containment))[0]
+    assert got == pytest.approx(expected, rel=1e-5)
+    assert 0.0 < 1.0 - np_diou(pred, mask) < 0.2  # the DIoU term is really in there
+
+
+def two_box_lanes():
+    """Two boxes (one moving), three lanes: identity camera, a turned and shifted camera at
+    frame offsets 2 and -1."""
+    centres, sizes = np.array([[0.5, 0.2, 10.0], [-3.0, 0.4, 16.0]]), np.array([[1.9, 1.5, 4.3], [1.7, 1.4, 3.9]])
+    yaws, vel = np.array([0.35, -0.8]), np.array([[0.0, 0.0, 0.0], [0.4, 0.0, -0.6]])
+    field = field_of(centres, sizes, yaws, velocities=vel, dynamic=np.array([0.0, 1.0]))
+    turn = np.eye(4)
+    c, s = math.cos(0.1), math.sin(0.1)
+    turn[:3, :3] = [[c, 0, s], [0, 1, 0], [-s, 0, c]]
+    turn[:3, 3] = [0.3, -0.1, -1.5]
+    w2c = np.stack([np.eye(4), turn, turn])
+    box, dt = np.array([0, 1, 0]), np.array([0.0, 2.0, -1.0])
+    # mask boxes: the intended footprints moved by a few pixels (both Huber branches)
+    offsets = np.array([[3.2, -2.7, 0.4, -4.1], [-0.3, 2.2, -5.0, 1.7], [6.0, 0.6, -2.4, -0.5]])
+    target = np.stack([np_footprint(centres[k] + vel[k] * t * (k == 1), sizes[k], yaws[k], w)
+                       for k, t, w in zip(box, dt, w2c)]) + offsets
+    return field, losses.ProjectionLanes(box, dt, w2c, target, K, IMAGE_BOUNDS)
+
+
+def test_projection_loss_of_moving_box_matches_numpy():
+    field, lanes = two_box_lanes()
+    b = field.numpy_boxes()
+    expected = 0.0
+    for lane in range(3):
+        k, dt = int(np.array(lanes.box)[lane]), float(np.array(lanes.dt)[lane])
+        centre = b["centres"][k] + b["dynamic"][k] * b["velocities"][k] * dt
+        w2c = np.stack([np.array(lanes.rot[i][j])[lane] for i in range(3) for j in range(3)]).reshape(3, 3)
+        T = np.eye(4)
+        T[:3, :3] = w2c
+        T[:3, 3] = [np.array(lanes.trans[i])[lane] for i in range(3)]
+        pred = np_footprint(centre, b["sizes"][k], b["yaws"][k], T)
+        mask = np.array([np.array(lanes.target[i])[lane] for i in range(4)])
+        expected += W_HUBER * np_huber(pred - mask) + W_DIOU * (1.0 - np_diou(pred, mask))
+    got = values(losses.projection_loss(field.decode(), lanes, BETA, W_HUBER, W_DIOU))[0]
+    assert got == pytest.approx(expected / 3.0, rel=1e-5)
+
+
+def test_projection_loss_gradients_match_finite_differences():
+    field, lanes = two_box_lanes()
+    keys = ("box_centre", "box_dims", "box_yaw", "box_velocity")
+    base = {k: np.array(field.params[k], dtype=np.float64) for k in keys}
+    for k in keys:
+        dr.enable_grad(field.params[k])
+    dr.backward(losses.projection_loss(field.decode(), lanes, BETA, W_HUBER, W_DIOU))
+    ad = {k: values(dr.grad(field.params[k])) for k in keys}
+
+    def loss_at(key, i, delta) -> float:
+        raw = base[key].copy()
+        raw[i] += delta
+        field.params[key] = to_float(raw)
+        try:
+            with dr.suspend_grad():
+                return float(values(losses.projection_loss(field.decode(), lanes, BETA, W_HUBER, W_DIOU))[0])
+        finally:
+            field.params[key] = to_float(base[key])
+
+    # steps: ~1 mm of centre, ~0.2 mm of half-size, ~0.2 mrad of yaw, 0.2 mm/frame of velocity
+    # (~0.05-0.1 px: smaller than the pixel errors, so no Huber or corner switch in between)
+    eps = {"box_centre": 1e-4, "box_dims": 5e-4, "box_yaw": 2e-4, "box_velocity": 2e-4}
+    checked = 0
+    for key in keys:
+        for i in range(len(base[key])):
+            if key == "box_velocity" and i < 3:
+                assert np.all(ad[key][:3] == 0)  # the static box's velocity does not count
+                continue
+            fd = (loss_at(key, i, eps[key]) - loss_at(key, i, -eps[key])) / (2 * eps[key])
+            assert ad[key][i] == pytest.approx(fd, rel=1e-2, abs=1e-2), (key, i, ad[key][i], fd)
+            checked += 1
+    assert checked == 6 + 6 + 4 + 3
+    assert max(abs(v).max() for v in ad.values()) > 1.0  # the gradients are not all ~0
+
+
+# ----------------------------------------------------------------------------------------------
+# init and eikonal losses
+# ----------------------------------------------------------------------------------------------
+
+
+def test_init_loss_is_the_l1_sum_per_box():
+    centres = np.array([[0.5, 0.2, 10.0], [-3.0, 0.4, 16.0]])
+    vel = np.array([[0.1, 0.0, 0.2], [0.4, 0.0, -0.6]])
+    field = field_of(centres, np.array([[1.9, 1.5, 4.3], [1.7, 1.4, 3.9]]), np.zeros(2), velocities=vel,
+                     dynamic=np.array([0.0, 1.0]))
+    dec = field.decode()
+    b = field.numpy_boxes()
+    c_init = centres + np.array([[0.5, -0.25, 1.0], [0.0, 0.125, -2.0]])
+    v_init = np.array([[1.0, 1.0, 1.0], [0.5, 0.0, -0.5]])
+    mask = np.array([0.0, 1.0])
+    got = values(losses.init_loss(dec, c_init, v_init, mask))[0]
+    # by hand: centre L1 1.75 + 2.125, velocity L1 of box 1 only: 0.1 + 0 + 0.1
+    assert got == pytest.approx((1.75 + 2.125 + 0.2) / 2, abs=1e-4)
+    expected = (np.abs(b["centres"] - c_init).sum() + (mask[:, None] * np.abs(b["velocities"] - v_init)).sum()) / 2
+    assert got == pytest.approx(expected, rel=1e-6)
+    got = values(losses.init_loss(dec, c_init, None, None))[0]
+    assert got == pytest.approx(np.abs(b["centres"] - c_init).sum() / 2, rel=1e-6)
+
+
+def eikonal_points(rng, n: int, count: int) -> np.ndarray:
+    """Box-local points (units of half-extents) clear of edges and of the inner medial planes:
+    0.9 (inside) or 1.3 (outside) along one axis, |other coordinates| <= 0.4."""
+    pts = rng.uniform(-0.4, 0.4, (n, count, 3))
+    axis = rng.integers(3, size=(n, count))
+    side = rng.choice([-1.0, 1.0], (n, count)) * rng.choice([0.9, 1.3], (n, count))
+    np.put_along_axis(pts, axis[..., None], side[..., None], axis=2)
+    return pts
+
+
+def test_eikonal_zero_for_box_sdf_and_positive_with_residual():
+    field = field_of(np.array([[0.0, 0.5, 10.0], [3.0, 0.5, 15.0]]), np.array([[1.8, 1.5, 4.2], [2.0, 1.6, 4.6]]),
+                     np.array([0.3, -1.0]), residual=True)
+    dec = field.decode()
+    pts = eikonal_points(np.random.default_rng(0), 2, 64)
+    weights = field.residual_weights()
+    # all generated MLP weights 0: the residual is the constant r_max * sigmoid(-shift)
+    zero = mi.TensorXf(dr.zeros(mi.Float, dr.width(weights.array)), shape=weights.shape)
+    flat = values(losses.eikonal_loss(field, dec, zero, pts, 0.02))[0]
+    assert flat < 1e-9, flat
+    rough = values(losses.eikonal_loss(field, dec, weights, pts, 0.02))[0]
+    assert rough > 1e-7 and rough > 1e3 * flat, (rough, flat)
+    # and near a box edge the finite differences of a pure box SDF see |grad| != 1
+    edge = np.full((2, 8, 3), 0.4)
+    edge[:, :, 0] = edge[:, :, 1] = 1.0
+    assert values(losses.eikonal_loss(field, dec, zero, edge, 0.02))[0] > 1e-3
+
+
+# ----------------------------------------------------------------------------------------------
+# schedule, learning-rate decay, early stop
+# ----------------------------------------------------------------------------------------------
+
+
+def test_cosine_schedule_end_points_and_midpoint():
+    assert cosine(1.0, 0.1, 0, 600) == pytest.approx(1.0)
+    assert cosine(1.0, 0.1, 600, 600) == pytest.approx(0.1)
+    assert cosine(1.0, 0.1, 300, 600) == pytest.approx(0.55)
+    assert cosine(1.0, 0.1, 150, 600) == pytest.approx(0.1 + 0.45 * (1 + math.cos(math.pi / 4)))
+    assert cosine(1.0, 0.1, 900, 600) == pytest.approx(0.1)  # clamped beyond the end
+    assert cosine(2.0, 4.0, -5, 10) == pytest.approx(2.0)
+    vals = [cosine(1.0, 0.1, i, 50) for i in range(51)]
+    assert all(a >= b for a, b in zip(vals, vals[1:]))  # monotone
+
+
+def test_convergence_stops_on_a_flat_run_only():
+    box = np.zeros(6)
+    conv = Convergence(window=5, rel_loss=0.01, box_tol=0.02)
+    stops = [conv.update(1.0, box) for _ in range(12)]
+    assert stops[:9] == [False] * 9 and stops[9:] == [True] * 3  # needs two full windows
+    improving = Convergence(window=5, rel_loss=0.01, box_tol=0.02)
+    assert not any(improving.update(0.97 ** i, box) for i in range(200))  # -3 % per step
+    moving = Convergence(window=5, rel_loss=0.01, box_tol=0.02)
+    assert not any(moving.update(1.0, box + 0.01 * i) for i in range(50))  # boxes still drift
+    noisy = Convergence(window=5, rel_loss=0.01, box_tol=0.02)
+    rng = np.random.default_rng(0)
+    assert any(noisy.update(1.0 + 0.05 * rng.normal(), box) for _ in range(50))  # noise, no trend
+
+
+# ----------------------------------------------------------------------------------------------
+# KITTI label export round trip (an independent minimal parser)
+# ----------------------------------------------------------------------------------------------
+
+
+def parse_minimal(text: str) -> list[dict]:
+    names = ["truncated", "occluded", "alpha", "x1", "y1", "x2", "y2", "h", "w", "l", "x", "y", "z", "ry", "score"]
+    rows = []
+    for line in text.strip().split("\n"):
+        parts = line.split(" ")
+        rows.append({"type": parts[0], **{n: float(v) for n, v in zip(names, parts[1:])}})
+    return rows
+
+
+def kitti_corners(row: dict) -> np.ndarray:
+    """The KITTI devkit's ``compute_box_3d``: corners from (h, w, l, x, y, z, ry)."""
+    l, w, h = row["l"], row["w"], row["h"]  # noqa: E741
+    xc = [l / 2, l / 2, -l / 2, -l / 2, l / 2, l / 2, -l / 2, -l / 2]
+    yc = [0, 0, 0, 0, -h, -h, -h, -h]
+    zc = [w / 2, -w / 2, -w / 2, w / 2, w / 2, -w / 2, -w / 2, w / 2]
+    c, s = math.cos(row["ry"]), math.sin(row["ry"])
+    R = np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])
+    return (R @ np.array([xc, yc, zc])).T + [row["x"], row["y"], row["z"]]
+
+
+def test_export_round_trip_with_independent_parser(tmp_path):
+    rng = np.random.default_rng(3)
+    boxes = [Box3D(rng.uniform([-20, 0.5, 4], [20, 1.5, 70]), rng.uniform([1.5, 1.3, 3.5], [2.2, 2.0, 5.5]),
+                   rng.uniform(-math.pi, math.pi), instance_id=26001 + i) for i in range(6)]
+    box2d = rng.uniform(0, 600, (6, 4))
+    scores = rng.uniform(0, 1, 6)
+    path = tmp_path / "labels" / "0000000014.txt"
+    write_labels(path, [label_from_box(b, b2, score=float(s)) for b, b2, s in zip(boxes, box2d, scores)])
+    rows = parse_minimal(path.read_text())
+    assert len(rows) == 6
+    tol = 1e-6
+    for row, box, b2, score in zip(rows, boxes, box2d, scores):
+        assert row["type"] == "Car" and row["truncated"] == 0.0 and row["occluded"] == 0.0
+        np.testing.assert_allclose([row["x1"], row["y1"], row["x2"], row["y2"]], b2, atol=tol)
+        np.testing.assert_allclose([row["w"], row["h"], row["l"]], box.size, atol=tol)
+        np.testing.assert_allclose([row["x"], row["y"], row["z"]], box.centre + [0, box.size[1] / 2, 0], atol=tol)
+        ry = (box.yaw - math.pi / 2 + math.pi) % (2 * math.pi) - math.pi
+        assert abs(row["ry"] - ry) < tol or abs(abs(row["ry"] - ry) - 2 * math.pi) < tol
+        alpha = (ry - math.atan2(row["x"], row["z"]) + math.pi) % (2 * math.pi) - math.pi
+        assert abs(row["alpha"] - alpha) < 2 * tol or abs(abs(row["alpha"] - alpha) - 2 * math.pi) < 2 * tol
+        assert row["score"] == pytest.approx(score, abs=tol)
+        # the KITTI devkit's corners are our box's corners (as a set)
+        ours, theirs = box.corners(), kitti_corners(row)
+        dist = np.linalg.norm(ours[:, None] - theirs[None], axis=2)
+        assert np.all(dist.min(axis=1) < 1e-5) and np.all(dist.min(axis=0) < 1e-5)
+
+
+# ----------------------------------------------------------------------------------------------
+# the optimiser on the bundled scene: matching, skip switches, lanes, learning rates
+# ----------------------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def scene():
+    from vsrd_mi.data.kitti360 import Sequence
+    from vsrd_mi.data.observations import load_observations
+    from vsrd_mi.data.selection import SelectionConfig, spec_for_frame
+    seq = Sequence(SCENE_ROOT, 0)
+    obs = load_observations(seq, spec_for_frame(seq, TARGET_FRAME, SelectionConfig()))
+    gt = {b.instance_id: b.transformed(obs.cam_to_opt[0]) for b in seq.ground_truth(TARGET_FRAME)}
+    return obs, [gt[int(i)] for i in obs.instance_ids]
+
+
+def quick(**kw):
+    return default_config().replace(**{"steps": 4, "warmup_steps": 2, "rays_per_step": 64, "eikonal_points": 16, **kw})
+
+
+@pytest.mark.parametrize("order", ["reversed", "rotated"])
+def test_matching_assigns_ground_truth_boxes_to_their_instances(scene, order):
+    obs, gt = scene
+    n = len(gt)
+    idx = list(range(n))[::-1] if order == "reversed" else [(i + 2) % n for i in range(n)]
+    boxes = [gt[i] for i in idx]
+    opt = BoxOptimiser(obs, boxes, quick(residual=False))
+    perm = opt._match(opt.integrator.field.decode())
+    assert sorted(perm) == list(range(n))
+    assert [int(obs.instance_ids[p]) for p in perm] == [b.instance_id for b in boxes]
+    assert not np.array_equal(perm, np.arange(n))  # the order really was permuted
+
+
+@dataclass
+class Spied:
+    """What an instrumented run saw per step."""
+
+    result: object
+    optimiser: BoxOptimiser
+    initial: dict  # decoded boxes before the run
+    residual_calls: list  # evaluate_grouped calls per step
+    adam_keys: list  # parameter keys of every Adam the optimiser created
+    learning_rates: dict  # Adam index -> learning rate set per step
+
+
+def spied_run(monkeypatch, obs, boxes, cfg) -> Spied:
+    steps_done = [0]
+    residual_calls = [0] * cfg.steps
+    real_eval = ResidualField.evaluate_grouped
+
+    def counting_eval(self, *args, **kwargs):
+        residual_calls[steps_done[0]] += 1
+        return real_eval(self, *args, **kwargs)
+
+    monkeypatch.setattr(ResidualField, "evaluate_grouped", counting_eval)
+    adams, adam_keys, rates = [], [], {}
+    real_adam = BoxOptimiser._adam
+
+    def recording_adam(self, keys, lr):
+        opt = real_adam(self, keys, lr)
+        adams.append(opt)
+        adam_keys.append(list(keys))
+        return opt
+
+    monkeypatch.setattr(BoxOptimiser, "_adam", recording_adam)
+    real_set = mi.ad.Adam.set_learning_rate
+
+    def recording_set(self, value=None, /, **kw):
+        i = next((j for j, a in enumerate(adams) if a is self), None)
+        if i is not None:  # (not the constructor's own call)
+            rates.setdefault(i, {})[steps_done[0]] = float(value)
+        return real_set(self, value, **kw)
+
+    monkeypatch.setattr(mi.ad.Adam, "set_learning_rate", recording_set)
+    opt = BoxOptimiser(obs, boxes, cfg)
+    initial = opt.integrator.field.numpy_boxes()
+
+    def progress(step, loss):
+        steps_done[0] = step + 1
+
+    result = opt.run(progress=progress)
+    return Spied(result, opt, initial, residual_calls, adam_keys, rates)
+
+
+@pytest.fixture(scope="module")
+def residual_run(scene):
+    """Ground-truth boxes (two moving) in a rotated order, residual from step 2 of 4."""
+    obs, gt = scene
+    with pytest.MonkeyPatch.context() as mp:
+        return spied_run(mp, obs, gt[1:] + gt[:1], quick(residual=True))
+
+
+@pytest.fixture(scope="module")
+def static_run(scene):
+    """All boxes static, no residual."""
+    obs, gt = scene
+    static = [Box3D(b.centre, b.size, b.yaw, np.zeros(3), False, b.instance_id) for b in gt]
+    with pytest.MonkeyPatch.context() as mp:
+        return spied_run(mp, obs, static, quick(residual=False, steps=3))
+
+
+def test_residual_not_evaluated_during_warmup_but_after(residual_run):
+    cfg = residual_run.optimiser.cfg
+    calls = residual_run.residual_calls
+    assert calls[:cfg.warmup_steps] == [0] * cfg.warmup_steps, calls
+    # after: the silhouette samples near the boxes and the eikonal points, every step
+    assert all(c >= 2 for c in calls[cfg.warmup_steps:]), calls
+    assert residual_run.result.loss_history["eikonal"][:cfg.warmup_steps] == [0.0] * cfg.warmup_steps
+    assert all(v > 0 for v in residual_run.result.loss_history["eikonal"][cfg.warmup_steps:])
+    rdf = [keys for keys in residual_run.adam_keys if any("rdf_" in k for k in keys)]
+    assert len(rdf) == 2  # embedding and hypernetwork, created when the residual joins
+
+
+def test_no_residual_never_evaluated(static_run):
+    assert static_run.residual_calls == [0] * static_run.optimiser.cfg.steps
+    assert not any("rdf_" in k for keys in static_run.adam_keys for k in keys)
+    assert static_run.result.loss_history["eikonal"] == [0.0] * static_run.result.steps
+
+
+def test_no_dynamic_instance_no_velocity(static_run, residual_run):
+    vel_key = static_run.optimiser.vel_key
+    assert not any(vel_key in keys for keys in static_run.adam_keys)
+    assert np.all(values(static_run.optimiser.params[vel_key]) == 0.0)
+    assert all(np.all(b.velocity == 0) and not b.dynamic for b in static_run.result.boxes)
+    # control: with moving cars there is a velocity optimiser; their velocities move, the
+    # static boxes' entries stay exactly 0
+    assert sum(vel_key in keys for keys in residual_run.adam_keys) == 1
+    dynamic = residual_run.optimiser.dynamic
+    assert dynamic.sum() == 2
+    after = values(residual_run.optimiser.params[vel_key]).reshape(-1, 3)
+    before = residual_run.initial["velocities"]
+    assert np.all(np.any(after[dynamic] != before[dynamic], axis=1))
+    assert np.all(after[~dynamic] == 0.0) and np.all(before[~dynamic] == 0.0)
+
+
+def test_learning_rates_decay_exponentially(residual_run):
+    cfg = residual_run.optimiser.cfg
+    starts = {"box": cfg.lr.box, "velocity": cfg.lr.velocity, "embedding": cfg.lr.embedding,
+              "hypernetwork": cfg.lr.hypernetwork}
+    checked = 0
+    for i, keys in enumerate(residual_run.adam_keys):
+        group = ("velocity" if any("velocity" in k for k in keys) else "embedding" if any("embedding" in k for k in keys)
+                 else "hypernetwork" if any("hyper" in k for k in keys) else "box")
+        for step, lr in residual_run.learning_rates[i].items():
+            # decays to lr.decay times the start over the run: lr_0 * decay ** (step / steps)
+            assert lr == pytest.approx(starts[group] * cfg.lr.decay ** (step / cfg.steps), rel=1e-6), (group, step)
+            checked += 1
+    assert sorted(residual_run.learning_rates[0]) == list(range(cfg.steps))  # the boxes: every step
+    assert checked >= cfg.steps * 2 + 2 * (cfg.steps - cfg.warmup_steps)
+
+
+def test_matching_survives_the_run_and_invisible_instances_get_no_lanes(residual_run, scene):
+    obs, gt = scene
+    opt = residual_run.optimiser
+    boxes_in = gt[1:] + gt[:1]
+    assert list(residual_run.result.instance_ids) == [b.instance_id for b in boxes_in]
+    lanes = opt._projection_lanes()
+    pairs = sorted(zip(np.array(lanes.box).tolist(), np.array(lanes.dt).round().astype(int).tolist()))
+    expected = sorted((n, int(obs.dt[f])) for f in opt.frames for n in range(opt.n) if obs.visible[f, opt.perm[n]])
+    assert pairs == expected
+    hidden = sum(1 for f in opt.frames for n in range(opt.n) if not obs.visible[f, opt.perm[n]])
+    assert hidden > 0 and lanes.count == len(opt.frames) * opt.n - hidden
+    assert residual_run.result.projected_lanes == lanes.count
+    assert np.all(np.isfinite(np.stack([np.array(t) for t in lanes.target])))
+
+
+def test_rays_outside_every_box_reach_are_not_traced():
+    centres = np.array([[-2.0, 0.5, 12.0], [3.0, 0.5, 20.0]])
+    p = mi.Properties()
+    for k, v in instance_properties(centres, np.array([[1.8, 1.5, 4.2], [2.0, 1.6, 4.5]]), np.array([0.2, -0.5])).items():
+        p[k] = v
+    it = VSRDSilhouetteIntegrator(p)
+    it.set_schedule(10.0, 0.1)
+    rng = np.random.default_rng(1)
+    n = 128
+    towards = centres[rng.integers(0, 2, n)] + rng.uniform(-0.5, 0.5, (n, 3))
+    away = np.column_stack([rng.uniform(-1, 1, n), rng.uniform(-1, 1, n), -rng.uniform(0.5, 1.0, n)])
+    d = np.concatenate([towards, away])
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+
+    def render(dirs):
+        zeros = np.zeros(len(dirs))
+        return it.render_rays(mi.Point3f(*[to_float(zeros) for _ in range(3)]),
+                              mi.Vector3f(*[to_float(c) for c in dirs.T]), to_float(zeros))
+
+    with dr.suspend_grad():
+        labels = render(d)
+        assert it.last_stats["rays"] == n  # only the rays aimed at the boxes
+        fg = values(labels[0]) + values(labels[1])
+        assert np.all(fg[:n] > 0.5) and np.all(fg[n:] == 0.0) and np.all(values(labels[2])[n:] == 1.0)
+        labels = render(d[n:])
+        assert it.last_stats["rays"] == 0 and it.last_stats["sdf_evals"] == 0
+        assert np.all(values(labels[2]) == 1.0)
