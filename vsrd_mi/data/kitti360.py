@@ -407,6 +407,15 @@ def boxes_in_camera(world_boxes: list[WorldBox], frame: int, cam0_to_world: np.n
 _FRAME_PNG = re.compile(r"^(\d{10})\.png$")
 
 
+def frames_in(directory: Path) -> set[int]:
+    """Frame indices of the ``%010d.png`` files in ``directory``; DataError when it cannot be listed."""
+    try:
+        names = [p.name for p in directory.iterdir()]
+    except OSError as exc:
+        raise DataError(directory, f"cannot list directory: {exc.strerror or exc}") from None
+    return {int(m.group(1)) for name in names if (m := _FRAME_PNG.match(name))}
+
+
 class Sequence:
     """One KITTI-360 sequence below ``root``.
 
@@ -424,7 +433,7 @@ class Sequence:
         left_dir = self.image_dir(0)
         if not left_dir.is_dir():
             raise DataError(left_dir, "missing image directory")
-        with_image = {int(m.group(1)) for p in left_dir.iterdir() if (m := _FRAME_PNG.match(p.name))}
+        with_image = frames_in(left_dir)
         self.frames: list[int] = sorted(with_image & self._poses.keys())
 
     # -- paths -------------------------------------------------------------------------------
@@ -463,7 +472,7 @@ class Sequence:
         """Frames of :attr:`frames` that have an instance-map file (not yet checked for damage)."""
         if not self.has_masks:
             return []
-        names = {int(m.group(1)) for p in self.instance_dir.iterdir() if (m := _FRAME_PNG.match(p.name))}
+        names = frames_in(self.instance_dir)
         return [f for f in self.frames if f in names]
 
     # -- per-frame data ------------------------------------------------------------------------
