@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import errno
+import os
 import shutil
 from pathlib import Path
 
@@ -13,8 +15,12 @@ from test_kitti360_loader import SEQ, H, W, make_dataset
 
 from vsrd_mi.data.kitti360 import (CAR_KITTI_ID, Sequence, read_calibration, read_cam0_to_world,
                                    read_world_boxes)
+from vsrd_mi.batch import atomic
 from vsrd_mi.data import kitti360_write as kw
+from vsrd_mi.data.observations import load_observations
+from vsrd_mi.data.selection import SelectionConfig, select_targets, spec_for_frame
 from vsrd_mi.errors import DataError
+from vsrd_mi.export.kitti_labels import parse_label_line, write_labels
 
 FRAMES = [0, 1, 2, 3]
 
@@ -273,3 +279,129 @@ def test_good_frames_survive_bad_ones(root):
     with pytest.raises(DataError):
         seq.car_instances(2)
     assert len(seq.ground_truth(3)) == 1
+
+
+# -- masks: no car anywhere, a car seen only in the target -----------------------------------------
+
+#: Selection for the 9-frame toy sequences below (the default needs 16 / at least 4 sources).
+SMALL_SELECTION = SelectionConfig(num_sources=4, min_sources=4)
+NINE = list(range(9))
+A, C = 26001, 26003
+
+
+def test_empty_masks_everywhere(tmp_path):
+    seq = Sequence(make_dataset(tmp_path / "kitti", NINE, {f: {} for f in NINE}), SEQ)
+    assert select_targets(seq, SMALL_SELECTION) == []  # nothing to label is not a crash
+    with expect(seq.instance_path(4), "frame 4 has no car passing the size filter"):
+        spec_for_frame(seq, 4, SMALL_SELECTION)
+
+
+def test_instance_present_only_in_the_target(tmp_path):
+    layout = {f: {} for f in NINE}
+    layout[4] = {C: (10, 10, 40, 40)}
+    seq = Sequence(make_dataset(tmp_path / "alone", NINE, layout), SEQ)
+    assert select_targets(seq, SMALL_SELECTION) == []
+    with expect(seq.instance_path(4), "frame 4 has only 0 source candidates \\(need 4\\)"):
+        spec_for_frame(seq, 4, SMALL_SELECTION)
+    # beside a car seen in every frame it stays a target instance, supervised by the target only
+    layout = {f: {A: (60, 20, 99, 59)} for f in NINE}
+    layout[4][C] = (10, 10, 40, 40)
+    seq = Sequence(make_dataset(tmp_path / "beside", NINE, layout), SEQ)
+    spec = spec_for_frame(seq, 4, SMALL_SELECTION)
+    assert spec.instance_ids == (A, C) and spec.group == (4,) and len(spec.sources) == 4
+    obs = load_observations(seq, spec)
+    c = list(obs.instance_ids).index(C)
+    assert obs.visible[0, c] and not obs.visible[1:, c].any()
+    assert np.isnan(obs.boxes2d[1:, c]).all() and not obs.masks[1:, c].any()
+
+
+# -- unreadable directories ---------------------------------------------------------------------
+
+
+def deny_listing(monkeypatch, directory: Path) -> None:
+    """Make ``directory`` unreadable: mode 000 (enough for a normal user) and, since root reads
+    anything, listing it raises ``PermissionError`` like the kernel would (the caller restores
+    the mode)."""
+    directory.chmod(0)
+    real_listdir, real_scandir = os.listdir, os.scandir
+
+    def refuse(path):
+        if Path(os.fsdecode(path)) == directory:
+            raise PermissionError(errno.EACCES, os.strerror(errno.EACCES), str(directory))
+
+    monkeypatch.setattr(os, "listdir", lambda path=".": refuse(path) or real_listdir(path))
+    monkeypatch.setattr(os, "scandir", lambda path=".": refuse(path) or real_scandir(path))
+
+
+@pytest.fixture
+def unreadable(monkeypatch):
+    denied = []
+
+    def deny(directory: Path) -> None:
+        denied.append((directory, directory.stat().st_mode))
+        deny_listing(monkeypatch, directory)
+
+    yield deny
+    for directory, mode in denied:
+        directory.chmod(mode)
+
+
+def test_unreadable_image_directory(root, unreadable):
+    directory = root / "data_2d_raw" / SEQ / "image_00" / "data_rect"
+    unreadable(directory)
+    with expect(directory, "cannot list directory"):
+        Sequence(root, SEQ)
+
+
+def test_unreadable_instance_directory(root, unreadable):
+    seq = Sequence(root, SEQ)
+    unreadable(seq.instance_dir)
+    with expect(seq.instance_dir, "cannot list directory"):
+        seq.mask_frames  # noqa: B018  (the property lists the directory)
+
+
+# -- disk full on output ------------------------------------------------------------------------
+
+
+class FullDisk:
+    """A file object whose writes fail with ENOSPC (everything else is the real file)."""
+
+    def __init__(self, f):
+        self._f = f
+
+    def write(self, data):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self._f.close()
+        return False
+
+    def __getattr__(self, name):
+        return getattr(self._f, name)
+
+
+def fill_disk(monkeypatch) -> None:
+    real_fdopen = os.fdopen
+    monkeypatch.setattr(os, "fdopen", lambda *a, **kw: FullDisk(real_fdopen(*a, **kw)))
+
+
+@pytest.mark.parametrize("writer", ["json", "text", "labels"])
+def test_disk_full_on_output(tmp_path, monkeypatch, writer):
+    label = parse_label_line("Car 0.00 0 -1.58 587.01 173.33 614.12 200.12 1.65 1.67 3.64 -0.65 1.71 46.70 -1.59")
+    write = {"json": lambda p: atomic.atomic_write_json(p, {"boxes": [1, 2, 3]}),
+             "text": lambda p: atomic.atomic_write_text(p, "new\n"),
+             "labels": lambda p: write_labels(p, [label, label])}[writer]
+    path = tmp_path / "out" / ("0000000014.json" if writer == "json" else "0000000014.txt")
+    path.parent.mkdir()
+    path.write_bytes(b"the previous, complete output\n")
+    fill_disk(monkeypatch)
+    with pytest.raises(OSError) as info:
+        write(path)
+    assert info.value.errno == errno.ENOSPC
+    assert str(path) in str(info.value) and "No space left on device" in str(info.value)
+    monkeypatch.undo()
+    assert path.read_bytes() == b"the previous, complete output\n"
+    assert [p.name for p in path.parent.iterdir()] == [path.name]  # no temporary file left
