@@ -128,10 +128,6 @@ class BenchConfig:
     fd: FDSteps = field(default_factory=FDSteps)
     seed: int = 0
     scene: SceneConfig = field(default_factory=SceneConfig)
-    #: Diagnostic: the target case once more with adaptive traced under this Dr.Jit expand
-    #: threshold (None: skip). 0 disables ReduceMode.Expand for the adaptive sampler's
-    #: variable-width scatter-adds, whose target sizes are otherwise baked into kernels.
-    diagnostic_expand_threshold: int | None = 0
 
 
 QUICK = BenchConfig(instances=(1, 6), rays=(1024, 16384))
@@ -315,10 +311,8 @@ def labels_and_gradient(it: VSRDSilhouetteIntegrator, chunks: Iterator[tuple[Cal
 class TimedIntegrator:
     """An integrator on a ray batch, run as an optimisation step would run it."""
 
-    def __init__(self, it: VSRDSilhouetteIntegrator, batch: RayBatch, cfg: BenchConfig, seed: int,
-                 expand_threshold: int | None = None):
+    def __init__(self, it: VSRDSilhouetteIntegrator, batch: RayBatch, cfg: BenchConfig, seed: int):
         self.it, self.batch, self.cfg = it, batch, cfg
-        self.expand_threshold = expand_threshold
         self.base = {k: np.array(it.field.params[k], dtype=np.float64) for k in BOX_KEYS}
         self.rng = np.random.default_rng(seed)
         self.calls = 0
@@ -335,16 +329,6 @@ class TimedIntegrator:
         params = [it.field.params[k] for k in BOX_KEYS]
         dr.eval(params)
         dr.sync_thread()
-        default_threshold = dr.expand_threshold()
-        if self.expand_threshold is not None:  # consulted when scatter-adds are traced
-            dr.set_expand_threshold(self.expand_threshold)
-        try:
-            return self._timed(params)
-        finally:
-            dr.set_expand_threshold(default_threshold)
-
-    def _timed(self, params: list[mi.Float]) -> tuple[float, KernelCounts]:
-        it = self.it
         with kernel_history() as counts:
             start = time.perf_counter()
             for p in params:
@@ -484,13 +468,11 @@ def counts_dict(c: KernelCounts) -> dict:
 
 
 def time_case(data: CaseData, fresh: CaseData, n_rays: int, residual: bool, cfg: BenchConfig,
-              log: Callable[[str], None], adaptive_expand_threshold: int | None = None) -> dict:
+              log: Callable[[str], None]) -> dict:
     """Cold, warm-up and timed iterations of dense and adaptive (alternating), then a warm first
-    iteration of each on a fresh scene. ``adaptive_expand_threshold``: trace adaptive's
-    iterations under this Dr.Jit expand threshold (None: Dr.Jit's default)."""
-    thresholds = {"dense": None, "adaptive": adaptive_expand_threshold}
+    iteration of each on a fresh scene."""
     runs = {s: TimedIntegrator(load_integrator(data.boxes, s, residual, cfg), data.batch(n_rays), cfg,
-                               cfg.seed + 7, thresholds[s]) for s in SAMPLINGS}
+                               cfg.seed + 7) for s in SAMPLINGS}
     res = {s: {} for s in SAMPLINGS}
     for s, run in runs.items():
         sec, counts = run.step()
@@ -519,7 +501,7 @@ def time_case(data: CaseData, fresh: CaseData, n_rays: int, residual: bool, cfg:
         run.restore()
     for s in SAMPLINGS:  # a freshly loaded integrator, new boxes and rays: kernels in memory
         run = TimedIntegrator(load_integrator(fresh.boxes, s, residual, cfg), fresh.batch(n_rays), cfg,
-                              cfg.seed + 8, thresholds[s])
+                              cfg.seed + 8)
         sec, counts = run.step()
         res[s].update(warm_first_iter_s=sec, warm_first_kernels=counts_dict(counts))
     for s in SAMPLINGS:
@@ -537,26 +519,6 @@ def case_data(cfg: BenchConfig, n_inst: int, residual: bool) -> tuple[CaseData, 
     seed = case_seed(cfg, n_inst, residual)
     return (CaseData.generate(seed, n_inst, max(cfg.rays), cfg.scene),
             CaseData.generate(seed + 500, n_inst, max(cfg.rays), cfg.scene))
-
-
-def expand_diagnostic(cfg: BenchConfig, log: Callable[[str], None]) -> dict:
-    """The target case (no residual) again, adaptive traced with ``dr.set_expand_threshold(0)``.
-
-    Dr.Jit's LLVM backend compiles scatter-adds into arrays of up to ``dr.expand_threshold()``
-    entries (including the adjoints of gathers) in ``ReduceMode.Expand``, which bakes the target
-    array's size into the kernel. The adaptive sampler's arrays change width every step (rays per
-    band-count group), so those kernels recompile every step; with the threshold at 0 they use
-    atomic scatter-adds whose kernels do not depend on sizes.
-    """
-    n_inst, n_rays = TARGET_CASE
-    data, fresh = case_data(cfg, n_inst, False)
-    log(f"  diagnostic: instances {n_inst}, rays {n_rays}, adaptive with expand threshold "
-        f"{cfg.diagnostic_expand_threshold} (dense: Dr.Jit default {dr.expand_threshold()})")
-    res = time_case(data, fresh, n_rays, False, cfg, log, cfg.diagnostic_expand_threshold)
-    return {"instances": n_inst, "rays": n_rays, "residual": False,
-            "adaptive_expand_threshold": cfg.diagnostic_expand_threshold,
-            "default_expand_threshold": dr.expand_threshold(),
-            "speedup": res["dense"]["iter_s_median"] / res["adaptive"]["iter_s_median"], **res}
 
 
 def run_benchmark(cfg: BenchConfig, log: Callable[[str], None] = print) -> list[dict]:
@@ -678,6 +640,7 @@ def cache_info(fresh: bool) -> dict:
 
 
 def summary(cases: list[dict]) -> dict:
+    """The target case and the worst kernel-compilation count after warm-up."""
     out = {"target": f"adaptive >= {TARGET_SPEEDUP:g}x dense at {TARGET_CASE[0]} instances / "
                      f"{TARGET_CASE[1]} rays"}
     for c in cases:
@@ -685,8 +648,9 @@ def summary(cases: list[dict]) -> dict:
             key = "with_residual" if c["residual"] else "no_residual"
             out[key] = {"speedup": c["speedup"], "dense_s": c["dense"]["iter_s_median"],
                         "adaptive_s": c["adaptive"]["iter_s_median"], "met": c["speedup"] >= TARGET_SPEEDUP}
-    out["max_compiles_per_iter_after_warmup"] = max(
-        max(c[s]["compiles_per_iter_after_warmup"]) for c in cases for s in SAMPLINGS)
+    for s in SAMPLINGS:
+        out[f"{s}_max_compiles_per_iter_after_warmup"] = max(
+            max(c[s]["compiles_per_iter_after_warmup"]) for c in cases)
     return out
 
 
@@ -742,18 +706,25 @@ def main(args: argparse.Namespace) -> int:
     print(f"  kernel cache: {cache['note']}", flush=True)
     load_start = os.getloadavg()
     start = time.perf_counter()
-    cases = run_benchmark(cfg, log=lambda msg: print(msg, flush=True))
+    log = lambda msg: print(msg, flush=True)  # noqa: E731
+    cases = run_benchmark(cfg, log)
+    note = args.note
+    if args.quick:
+        note = (f"--quick subset (instances {cfg.instances}, rays {cfg.rays}). " + note).strip()
     doc = {
         "benchmark": "vsrd-mi bench integrator",
         "command": "vsrd-mi bench integrator" + (" --quick" if args.quick else "")
                    + (" --fresh-cache" if args.fresh_cache else ""),
         "quick": bool(args.quick),
-        "note": args.note,
+        "note": note,
         "git_commit": git_commit(),
         "machine": {"cpus": os.cpu_count(), "platform": platform.platform(),
                     "processor": platform.processor(), "loadavg_start": load_start,
                     "loadavg_end": os.getloadavg()},
         "versions": {"drjit": dr.__version__, "mitsuba": mi.__version__, "variant": mi.variant()},
+        "jit": {"expand_threshold": dr.expand_threshold(),
+                "packet_ops": bool(dr.flag(dr.JitFlag.PacketOps)),
+                "scatter_reduce_local": bool(dr.flag(dr.JitFlag.ScatterReduceLocal))},
         "kernel_cache": cache,
         "wall_s": time.perf_counter() - start,
         "config": dataclasses.asdict(cfg),
