@@ -15,14 +15,20 @@ i.e. grazing, 20 % anywhere in the view) are rendered with ``render_rays`` by a 
   or loaded from the on-disk kernel cache: ``cold_*`` counts both; see ``--fresh-cache``) and
   **warm first iteration**: the first call of a freshly loaded integrator on a new scene and new
   rays of the same case, after the case has run (kernels in memory).
-* **kernel compilations per iteration after warm-up**: JIT kernel-history entries with
-  ``cache_hit`` false in each timed iteration (must be 0).
+* **kernel compilations per iteration after warm-up**: JIT kernel-history entries missing from
+  the in-memory kernel cache in each timed iteration (must be 0): ``cache_hit`` false (compiled)
+  or ``cache_disk`` true (loaded from the disk cache, which Dr.Jit reports with ``cache_hit``
+  true, so ``cache_hit`` alone misses recompilations of kernels an earlier process wrote).
 * **accuracy** on the first ``accuracy_rays`` rays of an instance count's ray set (shared by its
   ray counts, which use nested prefixes of one set): soft-label error (per ray the largest
   |difference| over instances; max and 99th percentile over rays) and the cosine of the gradients
   w.r.t. all box parameters, adaptive vs dense and each vs a brute-force reference: the
   integrator's own integral (``integrate_at``) on a uniform grid of spacing
   ``ref_spacing / s`` (the dense 100 + 100 sampler itself is up to ~0.4 off on grazing rays).
+  The AD gradient of a sampled integral, the reference's included, is one-sided where a ray's
+  deepest sample inside a box lies on a ridge of the box SDF (see
+  :func:`reference_fd_gradient`), so all three AD gradients are also compared with central
+  differences of the reference labels (``grad_cosine_vs_reference_fd``).
 
 Outputs: JSON (``--json PATH``; per case ``speedup``, ``max_abs_diff``, ``grad_cosine``, timings,
 compilation counts), a CSV and a PNG plot next to it (same stem).
@@ -95,15 +101,12 @@ class SceneConfig:
 
 @dataclass(frozen=True)
 class FDSteps:
-    """Central-difference steps per raw box parameter, each moving box surfaces by ~5 mm (well
-    below the 1/s = 10 cm over which soft labels vary, well above float32 noise): the decoded
-    centre moves ~27 m and a half-size ~0.2 m per raw unit, yaw ~1 rad per unit (2.5 m lever),
-    velocity 1 m/frame per unit (ray times up to 2 frames)."""
+    """Central differences of the reference: every raw box parameter is stepped so that box
+    surfaces move by about ``surface_m`` (well below the 1/s = 10 cm over which soft labels vary,
+    well above float32 noise), through the decoding's Jacobian (:func:`fd_steps`)."""
 
-    box_dims: float = 0.03
-    box_centre: float = 2e-4
-    box_yaw: float = 2.5e-3
-    box_velocity: float = 2.5e-3
+    surface_m: float = 0.005
+    yaw_lever_m: float = 2.0  # distance from the centre of the box corners a yaw step moves
 
 
 @dataclass(frozen=True)
@@ -391,9 +394,31 @@ def cosine(a: np.ndarray, b: np.ndarray) -> float:
     return float(a @ b / (na * nb)) if na > 0 and nb > 0 else float("nan")
 
 
+def fd_steps(it: VSRDSilhouetteIntegrator, cfg: BenchConfig) -> dict[str, np.ndarray]:
+    """Per raw box parameter, the step moving box surfaces by ~``cfg.fd.surface_m``.
+
+    Centres and half-sizes decode as ``lo + (hi - lo) sigmoid(raw)``, so a raw step ``e`` moves
+    them by ``(hi - lo) sigmoid'(raw) e``; the yaw pair ``v = (cos, sin)`` turns by up to
+    ``e / |v|`` rad; a velocity step ``e`` moves a box by up to ``max_time * e``.
+    """
+    r, step = it.field.ranges, cfg.fd.surface_m
+    raw = {k: np.array(it.field.params[k], dtype=np.float64) for k in BOX_KEYS}
+
+    def sigmoid_step(x: np.ndarray, lo, hi) -> np.ndarray:
+        span = np.tile(np.array(hi) - np.array(lo), len(x) // 3)
+        sig = 1.0 / (1.0 + np.exp(-x))
+        return step / (span * sig * (1.0 - sig))
+
+    yaw_norm = np.repeat(np.hypot(raw["box_yaw"][0::2], raw["box_yaw"][1::2]), 2)
+    return {"box_dims": sigmoid_step(raw["box_dims"], r.half_lo, r.half_hi),
+            "box_centre": sigmoid_step(raw["box_centre"], r.centre_lo, r.centre_hi),
+            "box_yaw": step / cfg.fd.yaw_lever_m * yaw_norm,
+            "box_velocity": np.full(len(raw["box_velocity"]), step / cfg.scene.max_time)}
+
+
 def reference_fd_gradient(data: CaseData, residual: bool, n: int, cfg: BenchConfig) -> np.ndarray:
     """Central differences of :func:`weighted_loss` of the reference labels of the first ``n`` rays
-    w.r.t. every raw box parameter (steps :class:`FDSteps`), in the order of :data:`BOX_KEYS`.
+    w.r.t. every raw box parameter (steps :func:`fd_steps`), in the order of :data:`BOX_KEYS`.
 
     The derivative of the converged soft labels. The AD gradient of any sampled integral
     (the reference's included) is one-sided where the deepest sample of a ray inside a box sits
@@ -414,17 +439,17 @@ def reference_fd_gradient(data: CaseData, residual: bool, n: int, cfg: BenchConf
             return total
 
     grad = []
+    steps = fd_steps(it, cfg)
     for key in BOX_KEYS:
         base = np.array(it.field.params[key], dtype=np.float64)
-        eps = getattr(cfg.fd, key)
-        for i in range(len(base)):
+        for i, eps in enumerate(steps[key]):
             values = []
             for sign in (1.0, -1.0):
                 x = base.copy()
                 x[i] += sign * eps
                 it.field.params[key] = to_float(x)
                 values.append(loss())
-            grad.append((values[0] - values[1]) / (2.0 * eps))
+            grad.append((values[0] - values[1]) / (2.0 * float(eps)))
         it.field.params[key] = to_float(base)
     return np.array(grad)
 
@@ -560,7 +585,8 @@ CSV_COLUMNS = ("instances", "rays", "residual", "dense_iter_s", "adaptive_iter_s
                "dense_compiles_after_warmup", "adaptive_compiles_after_warmup",
                "max_abs_diff", "p99_abs_diff", "grad_cosine",
                "adaptive_ref_max_abs", "adaptive_ref_p99_abs", "adaptive_ref_grad_cosine",
-               "dense_ref_max_abs", "dense_ref_p99_abs", "dense_ref_grad_cosine")
+               "dense_ref_max_abs", "dense_ref_p99_abs", "dense_ref_grad_cosine",
+               "adaptive_fd_grad_cosine", "dense_fd_grad_cosine", "reference_fd_grad_cosine")
 
 
 def csv_row(case: dict) -> dict:
@@ -575,6 +601,8 @@ def csv_row(case: dict) -> dict:
         ref = acc[f"{s}_vs_reference"]
         row.update({f"{s}_ref_max_abs": ref["max_abs"], f"{s}_ref_p99_abs": ref["p99_abs"],
                     f"{s}_ref_grad_cosine": ref["grad_cosine"]})
+    for name, value in acc["grad_cosine_vs_reference_fd"].items():
+        row[f"{name}_fd_grad_cosine"] = value
     return row
 
 
