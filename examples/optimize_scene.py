@@ -1,12 +1,15 @@
 """Fit the car boxes of the bundled scene with plain Mitsuba 3 (mi.traverse, mi.ad.Adam, mi.render).
 
 The target frame is loaded as a Mitsuba scene (one sensor per frame, the ``vsrd_silhouette``
-integrator holding one box per car), the ground-truth boxes are perturbed, and the box parameters
-are fitted to the instance masks of a few views rendered at low resolution: the integrator writes
-one soft label per box as an AOV channel of ``mi.render``. Velocities stay at ground truth. Writes
-``before.png``, ``after.png`` (target view) and ``masks.png`` (the real masks) to ``--out``.
+integrator holding one box per car), the ground-truth boxes are moved and turned, and their
+centres and yaws (``--fit-size``: sizes too, perturbed first) are fitted to the instance masks of a
+few views rendered at low resolution: the integrator writes one soft label per box as an AOV
+channel of ``mi.render``. Velocities stay at ground truth. A car's silhouette is smaller than its
+box's, so a box-only silhouette fit is biased (boxes shrink or move away; ``vsrd-mi autolabel``
+adds the residual shape field and the 2D-box projection loss). Writes ``before.png`` and
+``after.png`` (target view) and ``masks.png`` (its real masks) to ``--out``.
 
-    python examples/optimize_scene.py --steps 120 --out example_out
+    python examples/optimize_scene.py --steps 100 --out example_out
 """
 
 import argparse
@@ -27,11 +30,11 @@ from vsrd_mi.scene.builder import load_scene
 from vsrd_mi.scene.sensors import perspective_sensor
 
 ROOT = Path(__file__).resolve().parents[1] / "scenes" / "kitti360-synth"
-#: Adam learning rates per raw parameter (a unit of raw centre moves the box ~30 m, see sdf.BoxRanges).
-LR = {"vsrd.box_dims": 8e-2, "vsrd.box_centre": 2e-3, "vsrd.box_yaw": 1e-2}
+#: Adam learning rates per raw parameter (a unit of raw centre moves a box ~30 m, see sdf.BoxRanges).
+LR = {"vsrd.box_centre": 2e-3, "vsrd.box_yaw": 1e-2, "vsrd.box_dims": 8e-2}
 LR_DECAY = 0.1  # final / initial learning rate
-S_START, S_END = 2.0, 10.0  # NeuS sharpness ramp (1/m): blurred first, sharp at the end
-PERTURB = {"centre_m": 0.5, "size_frac": 0.1, "yaw_rad": 0.15}
+S_START, S_END, RAMP = 2.0, 10.0, 0.6  # sharpness (1/m) from blurred to sharp over 60 % of the steps
+PERTURB = {"centre_m": 1.5, "yaw_rad": 0.3, "size_frac": 0.2}  # centre: std along x and z
 
 
 def ground_truth(seq: Sequence, obs) -> list[Box3D]:
@@ -43,14 +46,13 @@ def ground_truth(seq: Sequence, obs) -> list[Box3D]:
     return [gt[int(i)] for i in obs.instance_ids]
 
 
-def perturb(boxes: list[Box3D], rng: np.random.Generator) -> list[Box3D]:
-    """Boxes moved (x, z), rescaled and turned by random amounts of the sizes in ``PERTURB``."""
+def perturb(boxes: list[Box3D], rng: np.random.Generator, size: bool) -> list[Box3D]:
     out = []
     for b in boxes:
         shift = rng.normal(0.0, PERTURB["centre_m"], 3) * np.array([1.0, 0.0, 1.0])
-        scale = 1.0 + rng.uniform(-PERTURB["size_frac"], PERTURB["size_frac"], 3)
-        out.append(Box3D(b.centre + shift, b.size * scale, b.yaw + rng.uniform(-1, 1) * PERTURB["yaw_rad"],
-                         b.velocity, b.dynamic, b.instance_id))
+        scale = 1.0 + size * rng.uniform(-PERTURB["size_frac"], PERTURB["size_frac"], 3)
+        yaw = b.yaw + rng.uniform(-PERTURB["yaw_rad"], PERTURB["yaw_rad"])
+        out.append(Box3D(b.centre + shift, b.size * scale, yaw, b.velocity, b.dynamic, b.instance_id))
     return out
 
 
@@ -70,65 +72,65 @@ def current_boxes(scene: mi.Scene, like: list[Box3D]) -> list[Box3D]:
             for n, o in enumerate(like)]
 
 
-def render_rgb(scene: mi.Scene, sensor, path: Path) -> None:
-    """The integrator's colour output (box colours weighted by the soft labels) as a PNG."""
-    mi.util.write_bitmap(str(path), mi.render(scene, sensor=sensor, spp=1)[:, :, :3])
+def sensor(obs, i: int, scale: float) -> mi.Sensor:
+    """Frame ``i``'s camera with its image resized by ``scale``."""
+    return mi.load_dict(perspective_sensor(scaled_intrinsics(obs.K[i], scale), obs.cam_to_opt[i],
+                                           scaled_size(obs.image_size, scale), int(obs.dt[i])))
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--root", default=str(ROOT))
     ap.add_argument("--frame", type=int, default=3, help="target frame")
-    ap.add_argument("--steps", type=int, default=120)
+    ap.add_argument("--steps", type=int, default=100)
     ap.add_argument("--views", type=int, default=4, help="frames rendered per step (target + sources)")
     ap.add_argument("--scale", type=float, default=0.125, help="training render scale of the images")
+    ap.add_argument("--preview-scale", type=float, default=0.5, help="scale of before/after/masks.png")
+    ap.add_argument("--fit-size", action="store_true", help="perturb and fit the box sizes too")
     ap.add_argument("--out", default="example_out")
     ap.add_argument("--seed", type=int, default=0)
     args = ap.parse_args()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
 
-    scene, obs = load_scene(args.root, 0, args.frame)  # one sensor per frame, boxes at a default guess
+    scene, obs = load_scene(args.root, 0, args.frame)  # one sensor per frame; boxes at a default guess
     params = mi.traverse(scene)
     truth = ground_truth(Sequence(args.root, 0), obs)
-    start = perturb(truth, np.random.default_rng(args.seed))
+    start = perturb(truth, np.random.default_rng(args.seed), args.fit_size)
     set_boxes(params, scene.integrator().field.ranges, start)
 
-    # low-resolution training views (target + evenly spread frames) and their masks as targets
+    # low-resolution training views (target + evenly spread frames); their masks are the targets
     picks = np.unique(np.linspace(0, obs.num_frames - 1, args.views).round().astype(int))
     size = scaled_size(obs.image_size, args.scale)
-    views, targets = [], []
-    for i in picks:
-        views.append(mi.load_dict(perspective_sensor(scaled_intrinsics(obs.K[i], args.scale),
-                                                     obs.cam_to_opt[i], size, int(obs.dt[i]))))
-        m = downscaled_masks(obs.masks[i], size).transpose(1, 2, 0)  # (h, w, N) area fractions
-        targets.append(mi.TensorXf(to_float(m), shape=m.shape))
+    views = [sensor(obs, int(i), args.scale) for i in picks]
+    targets = [to_float(downscaled_masks(obs.masks[i], size).transpose(1, 2, 0)) for i in picks]  # (h, w, N)
     n = obs.num_instances
-    preview = mi.load_dict(perspective_sensor(scaled_intrinsics(obs.K[0], 0.5), obs.cam_to_opt[0],
-                                              scaled_size(obs.image_size, 0.5), 0))
-    render_rgb(scene, preview, out / "before.png")
-    masks = colourise(downscaled_masks(obs.masks[0], scaled_size(obs.image_size, 0.5)), box_colours(n))
-    mi.util.write_bitmap(str(out / "masks.png"), masks)
+    preview = sensor(obs, 0, args.preview_scale)
+    mi.util.write_bitmap(str(out / "before.png"), mi.render(scene, sensor=preview, spp=1)[:, :, :3])
+    masks = downscaled_masks(obs.masks[0], scaled_size(obs.image_size, args.preview_scale))
+    mi.util.write_bitmap(str(out / "masks.png"), colourise(masks, box_colours(n)))
     iou_before = [iou3d(b, t) for b, t in zip(current_boxes(scene, start), truth)]
 
-    opt = mi.ad.Adam(lr=1.0, params={k: params[k] for k in LR})
+    lrs = {k: v for k, v in LR.items() if args.fit_size or k != "vsrd.box_dims"}
+    opt = mi.ad.Adam(lr=1.0, params={k: params[k] for k in lrs})
     for step in range(args.steps):
         x = step / max(args.steps - 1, 1)
-        s = 1.0 / ((1.0 - x) / S_START + x / S_END)
+        r = min(x / RAMP, 1.0)
+        s = 1.0 / ((1.0 - r) / S_START + r / S_END)
         params["vsrd.sharpness"], params["vsrd.temperature"] = s, 1.0 / s
-        opt.set_learning_rate({k: lr * LR_DECAY ** x for k, lr in LR.items()})
+        opt.set_learning_rate({k: lr * LR_DECAY ** x for k, lr in lrs.items()})
         params.update(opt)
         loss = mi.Float(0.0)
         for view, target in zip(views, targets):
-            img = mi.render(scene, params, sensor=view, spp=1, seed=step)
-            loss += mean(binary_cross_entropy(img[:, :, 3:3 + n].array, target.array, 1e-6)) / len(views)
+            img = mi.render(scene, params, sensor=view, spp=1, seed=step)  # RGB, label_0..N-1, background
+            loss += mean(binary_cross_entropy(img[:, :, 3:3 + n].array, target, 1e-6)) / len(views)
         dr.backward(loss)
         opt.step()
         if step % 20 == 0 or step == args.steps - 1:
-            print(f"step {step:4d}  s {s:5.2f}  loss {loss[0]:.4f}")
+            print(f"step {step:4d}  sharpness {s:5.2f}  loss {loss[0]:.4f}")
     params.update(opt)
 
-    render_rgb(scene, preview, out / "after.png")
+    mi.util.write_bitmap(str(out / "after.png"), mi.render(scene, sensor=preview, spp=1)[:, :, :3])
     iou_after = [iou3d(b, t) for b, t in zip(current_boxes(scene, start), truth)]
     for b, a, z in zip(truth, iou_before, iou_after):
         print(f"instance {b.instance_id}: 3D IoU {a:.3f} -> {z:.3f}")
