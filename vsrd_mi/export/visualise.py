@@ -444,7 +444,8 @@ def write_loss_plot(out_dir: Path, optimiser: "BoxOptimiser", result: "Optimisat
     """``loss.png``."""
     c = optimiser.cfg
     residual_from = c.warmup_steps if c.residual and result.steps > c.warmup_steps else None
-    return [atomic_write_bytes(out_dir / "loss.png", loss_figure_png(result.loss_history, residual_from, cfg))]
+    png = loss_figure_png(result.loss_history, residual_from, cfg)
+    return [atomic_write_bytes(out_dir / "loss.png", png)]
 
 
 # ----------------------------------------------------------------------------------------------
