@@ -268,6 +268,9 @@ def test_init_loss_is_the_l1_sum_per_box():
     assert got == pytest.approx(expected, rel=1e-6)
     got = values(losses.init_loss(dec, c_init, None, None))[0]
     assert got == pytest.approx(np.abs(b["centres"] - c_init).sum() / 2, rel=1e-6)
+    # per-box weights (static 0.1, dynamic 20): by hand 0.1 * 1.75 + 20 * (2.125 + 0.2), / 2
+    got = values(losses.init_loss(dec, c_init, v_init, mask, np.array([0.1, 20.0])))[0]
+    assert got == pytest.approx((0.1 * 1.75 + 20.0 * (2.125 + 0.2)) / 2, abs=1e-3)
 
 
 def eikonal_points(rng, n: int, count: int) -> np.ndarray:

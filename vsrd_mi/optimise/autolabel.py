@@ -12,6 +12,7 @@ confidence (REFERENCE §7) and write, atomically,
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -143,6 +144,11 @@ def _cmd_autolabel(args: argparse.Namespace) -> int:
     from ..batch.runner import run_batch
 
     cfg = PRESETS[args.config]()
+    try:
+        cfg = cfg.with_overrides(args.set or [])
+    except ValueError as exc:
+        print(f"vsrd-mi autolabel: {exc}", file=sys.stderr)
+        return 2
     cfg = cfg.replace(residual=cfg.residual and not args.no_residual,
                       velocity=cfg.velocity and not args.no_velocity, init=cfg.init and not args.no_init)
     if args.steps:
@@ -174,6 +180,9 @@ def register(subparsers) -> None:
     p.add_argument("--no-velocity", action="store_true")
     p.add_argument("--no-init", action="store_true")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--set", action="append", metavar="KEY=VALUE",
+                   help="override a configuration field, e.g. --set weights.init_dynamic=0.1 "
+                        "--set lr.box=0.02 (repeatable; fields of vsrd_mi.optimise.config)")
     p.add_argument("--vis", action="store_true",
                    help="also write visual checks (projected boxes, masks, BEV, losses, meshes) "
                         "under OUT/SEQ/vis/<target>/")

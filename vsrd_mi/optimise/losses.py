@@ -137,16 +137,18 @@ def silhouette_loss(labels: list, targets: list, eps: float) -> mi.Float:
 
 
 def init_loss(dec: DecodedBoxes, centre_init: np.ndarray, velocity_init: np.ndarray | None,
-              velocity_mask: np.ndarray | None) -> mi.Float:
-    """``sum_n |l_n - l_init|_1 + |v_n - v_init|_1`` (velocity only where ``velocity_mask``), / N."""
+              velocity_mask: np.ndarray | None, box_weights: np.ndarray | None = None) -> mi.Float:
+    """``sum_n w_n (|l_n - l_init|_1 + |v_n - v_init|_1) / N`` (velocity only where
+    ``velocity_mask``); ``box_weights`` ``w_n`` default to 1."""
     n = len(centre_init)
-    total = mi.Float(0.0)
+    w = to_float(np.ones(n) if box_weights is None else box_weights)
+    per_box = dr.zeros(mi.Float, n)
     for j in range(3):
-        total = total + dr.sum(dr.abs(dec.centre[j] - to_float(centre_init[:, j])))
+        per_box = per_box + dr.abs(dec.centre[j] - to_float(centre_init[:, j]))
         if velocity_init is not None:
             m = to_float(velocity_mask)
-            total = total + dr.sum(m * dr.abs(dec.velocity[j] - to_float(velocity_init[:, j])))
-    return total / max(n, 1)
+            per_box = per_box + m * dr.abs(dec.velocity[j] - to_float(velocity_init[:, j]))
+    return dr.sum(w * per_box) / max(n, 1)
 
 
 def eikonal_loss(field: InstanceField, dec: DecodedBoxes, weights, points_local: np.ndarray,

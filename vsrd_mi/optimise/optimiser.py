@@ -206,6 +206,7 @@ class BoxOptimiser:
         if self.init_boxes is not None:
             centre_init = np.stack([b.centre for b in self.init_boxes])
             vel_init = np.stack([b.velocity for b in self.init_boxes])
+        init_weights = np.where(self.dynamic, cfg.weights.init_dynamic, cfg.weights.init)
         history = {k: [] for k in ("total", "projection", "silhouette", "eikonal", "init")}
         conv = Convergence(cfg.early_stop.window, cfg.early_stop.rel_loss, cfg.early_stop.box_tol)
         sdf_evals = 0
@@ -249,10 +250,10 @@ class BoxOptimiser:
                 l_eik = losses.eikonal_loss(it.field, dec, it.field.residual_weights(), self.eik_points,
                                             cfg.eikonal_step)
                 total = total + w.eikonal * l_eik
-            if centre_init is not None and w.init > 0:
+            if centre_init is not None and np.any(init_weights > 0):
                 l_init = losses.init_loss(dec, centre_init, vel_init if opt_vel is not None else None,
-                                          self.dynamic)
-                total = total + w.init * l_init
+                                          self.dynamic, init_weights)
+                total = total + l_init
             dr.backward(total)
             for o_ in opts:
                 o_.step()

@@ -1,0 +1,39 @@
+"""Configuration presets and the CLI's ``--set KEY=VALUE`` overrides."""
+
+import pytest
+
+from vsrd_mi.optimise.config import AutolabelConfig, LossWeights, default_config, paper_config
+
+
+def test_presets_differ_in_budget_not_in_losses():
+    d, p = default_config(), paper_config()
+    assert (p.steps, p.warmup_steps, p.rays_per_step, p.sampling) == (3000, 1000, 1000, "dense")
+    assert not p.early_stop.enabled and d.early_stop.enabled
+    assert p.weights == d.weights == LossWeights()
+
+
+def test_overrides_set_nested_and_top_level_fields():
+    cfg = default_config().with_overrides(["weights.init_dynamic=0.1", "lr.box=0.02", "steps=50",
+                                           "sampling=dense", "early_stop.enabled=false", "residual=false"])
+    assert cfg.weights.init_dynamic == 0.1 and isinstance(cfg.weights.init_dynamic, float)
+    assert cfg.lr.box == 0.02 and cfg.steps == 50 and cfg.sampling == "dense"
+    assert cfg.early_stop.enabled is False and cfg.residual is False
+    # integers given to float fields become floats; the source config is unchanged
+    assert default_config().with_overrides(["weights.init=1"]).weights.init == 1.0
+    assert default_config().weights.init_dynamic == LossWeights().init_dynamic
+    assert AutolabelConfig.from_dict(cfg.to_dict()) == cfg
+
+
+@pytest.mark.parametrize("item, message", [
+    ("weights.nope=1", "unknown field 'nope'"),
+    ("nope.init=1", "'nope' is not a configuration group"),
+    ("weights=1", "unknown field 'weights'"),
+    ("steps=1.5", "is not a valid int value"),
+    ("steps=many", "is not a valid int value"),
+    ("residual=1", "is not a valid bool value"),
+    ("sampling=3", "is not a valid str value"),
+    ("weights.init", "expected KEY=VALUE"),
+])
+def test_bad_overrides_name_the_key(item, message):
+    with pytest.raises(ValueError, match=message):
+        default_config().with_overrides([item])
