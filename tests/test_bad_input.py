@@ -289,11 +289,18 @@ NINE = list(range(9))
 A, C = 26001, 26003
 
 
-def test_empty_masks_everywhere(tmp_path):
+def test_empty_masks_everywhere(tmp_path, capsys):
     seq = Sequence(make_dataset(tmp_path / "kitti", NINE, {f: {} for f in NINE}), SEQ)
     assert select_targets(seq, SMALL_SELECTION) == []  # nothing to label is not a crash
     with expect(seq.instance_path(4), "frame 4 has no car passing the size filter"):
         spec_for_frame(seq, 4, SMALL_SELECTION)
+    # the CLI says so, naming the instance-map directory, and fails (nothing written)
+    from vsrd_mi.cli import main
+    assert main(["autolabel", str(tmp_path / "kitti"), "--sequence", SEQ, "--out",
+                 str(tmp_path / "out")]) == 1
+    err = capsys.readouterr().err
+    assert str(seq.instance_dir) in err and "no target frame" in err and "nothing to label" in err
+    assert not (tmp_path / "out").exists()
 
 
 def test_instance_present_only_in_the_target(tmp_path):

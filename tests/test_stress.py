@@ -558,3 +558,18 @@ def test_batch_records_non_finite_target_as_failed(monkeypatch, tmp_path):
     assert entry["error"]["type"].endswith("OptimisationError")
     assert "non-finite loss at step 0" in entry["error"]["message"]
     assert not (tmp_path / seq / "labels").exists() and not (tmp_path / seq / "boxes").exists()
+
+
+@pytest.mark.parametrize("field", ["cam_to_opt", "K"])
+def test_non_finite_camera_is_refused_before_optimising(target_obs, field):
+    """Observations built by hand (not through the validating loader) with a NaN pose or
+    intrinsic are refused up front, naming the frame, instead of optimising towards NaN."""
+    import dataclasses
+    from vsrd_mi.optimise.optimiser import BoxOptimiser
+    from vsrd_mi.scene.initial import default_initial_boxes
+    bad = getattr(target_obs, field).copy()
+    bad[2, 0, 1] = np.nan
+    obs = dataclasses.replace(target_obs, **{field: bad})
+    frame = int(obs.frames[2])
+    with pytest.raises(ValueError, match=rf"target {TARGET_FRAME}: non-finite {field} of frame\(s\) \[{frame}\]"):
+        BoxOptimiser(obs, default_initial_boxes(target_obs), quick_config())

@@ -79,12 +79,13 @@ GRID = (
     BenchSetting("no-velocity", {"velocity": False}),
     BenchSetting("no-init", {"init": False}),
     BenchSetting("init-weight-1", {"weights": {"init": 1.0}}),
+    BenchSetting("init-dynamic-paper", {"weights": {"init_dynamic": 0.1}}),
     BenchSetting("containment", {"weights": {"projection_mode": "containment"}}),
     BenchSetting("paper", {}, paper=True),
 )
 
-QUICK_SETTINGS = ("default", "no-residual", "no-velocity", "no-init", "abl-projection", "rays-500", "K-8",
-                  "containment")
+#: --quick: the default and the switches the issues ask to be measured (one target per dataset).
+QUICK_SETTINGS = ("default", "no-residual", "no-velocity", "no-init", "abl-projection")
 #: Step budget of --quick runs (the schedules are compressed accordingly).
 QUICK_STEPS = 150
 

@@ -154,7 +154,14 @@ def _cmd_autolabel(args: argparse.Namespace) -> int:
     if args.steps:
         cfg = cfg.replace(steps=args.steps, warmup_steps=min(cfg.warmup_steps, args.steps // 3))
     seq = Sequence(args.root, args.sequence)
-    specs = select_targets(seq, SelectionConfig(), frames=_frame_range(args.frames))
+    selection = SelectionConfig()
+    specs = select_targets(seq, selection, frames=_frame_range(args.frames))
+    if not specs:
+        where = f"frames {args.frames} of " if args.frames else ""
+        print(f"vsrd-mi autolabel: {seq.instance_dir}: no target frame in {where}{seq.name}: no frame has a car "
+              f"mask of >= {selection.min_mask_area} px and box side >= {selection.min_box_side:g} px seen in "
+              f">= {selection.min_sources} other frames; nothing to label", file=sys.stderr)
+        return 1
     print(f"{seq.name}: {len(specs)} target frame(s)" + "".join(
         f"\n  target {s.target}: {len(s.sources)} sources" + (f" ({s.note})" if s.note else "") for s in specs))
     tasks = [TargetTask(root=str(Path(args.root).resolve()), sequence=seq.name, frame=s.target,
