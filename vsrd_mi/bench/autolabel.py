@@ -80,6 +80,8 @@ GRID = (
     BenchSetting("no-init", {"init": False}),
     BenchSetting("init-weight-1", {"weights": {"init": 1.0}}),
     BenchSetting("init-dynamic-paper", {"weights": {"init_dynamic": 0.1}}),
+    BenchSetting("init-paper", {"weights": {"init": 0.1, "init_dynamic": 0.1}}),
+    BenchSetting("init-static-20", {"weights": {"init": 20.0}}),
     BenchSetting("containment", {"weights": {"projection_mode": "containment"}}),
     BenchSetting("paper", {}, paper=True),
 )
