@@ -9,6 +9,7 @@ def test_presets_differ_in_budget_not_in_losses():
     d, p = default_config(), paper_config()
     assert (p.steps, p.warmup_steps, p.rays_per_step, p.sampling) == (3000, 1000, 1000, "dense")
     assert not p.early_stop.enabled and d.early_stop.enabled
+    assert p.residual and not d.residual
     assert p.weights == d.weights == LossWeights()
 
 

@@ -400,7 +400,8 @@ def scene():
 
 
 def quick(**kw):
-    return default_config().replace(**{"steps": 4, "warmup_steps": 2, "rays_per_step": 64, "eikonal_points": 16, **kw})
+    return default_config().replace(**{"steps": 4, "warmup_steps": 2, "rays_per_step": 64, "eikonal_points": 16,
+                                       "residual": True, **kw})
 
 
 @pytest.mark.parametrize("order", ["reversed", "rotated"])
