@@ -276,3 +276,12 @@ def test_executor_options_parse():
     for bad in (["--workers", "0"], ["--workers", "2", "--scheduler", "tcp://h:1"]):
         with pytest.raises(SystemExit):
             parser.parse_args(bad)
+    # the spelling: --executor dask with --workers / --scheduler
+    assert executor_kwargs(parser.parse_args(["--executor", "dask", "--workers", "2"]))["executor"] == "dask"
+    assert executor_kwargs(parser.parse_args(["--executor", "dask", "--scheduler", "tcp://h:1"])) == {
+        "executor": "dask", "workers": None, "scheduler": "tcp://h:1", "progress": True}
+    assert executor_kwargs(parser.parse_args(["--executor", "inprocess"]))["executor"] == "inprocess"
+    with pytest.raises(ValueError, match="--executor dask needs --workers N"):
+        executor_kwargs(parser.parse_args(["--executor", "dask"]))
+    with pytest.raises(ValueError, match="cannot be combined"):
+        executor_kwargs(parser.parse_args(["--executor", "inprocess", "--workers", "2"]))

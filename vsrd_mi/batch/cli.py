@@ -1,6 +1,6 @@
 """Command-line pieces of batch runs.
 
-* :func:`add_executor_arguments` / :func:`executor_kwargs`: the ``--workers`` / ``--scheduler`` /
+* :func:`add_executor_arguments` / :func:`executor_kwargs`: the ``--executor`` / ``--workers`` / ``--scheduler`` /
   ``--no-progress`` options shared by batch sub-commands (e.g. ``vsrd-mi autolabel``), turned
   into keyword arguments of :func:`vsrd_mi.batch.run_batch`.
 * ``vsrd-mi batch-status OUT``: prints what every ``OUT/<sequence>/manifest.json`` records
@@ -28,6 +28,9 @@ def _positive_int(text: str) -> int:
 def add_executor_arguments(parser: argparse.ArgumentParser) -> None:
     """Add ``--workers N``, ``--scheduler ADDRESS`` and ``--no-progress`` to ``parser``."""
     group = parser.add_argument_group("batch execution")
+    group.add_argument("--executor", choices=("inprocess", "dask"), default=None,
+                       help="where targets run: in this process (the default) or on Dask; dask needs "
+                            "--workers N (a local cluster) or --scheduler ADDRESS (an existing one)")
     where = group.add_mutually_exclusive_group()
     where.add_argument("--workers", type=_positive_int, default=None, metavar="N",
                        help="run targets on a local Dask cluster of N worker processes "
@@ -38,8 +41,18 @@ def add_executor_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def executor_kwargs(args: argparse.Namespace) -> dict[str, Any]:
-    """Keyword arguments of :func:`vsrd_mi.batch.run_batch` from the options added above."""
+    """Keyword arguments of :func:`vsrd_mi.batch.run_batch` from the options added above.
+
+    ``--workers`` / ``--scheduler`` imply ``--executor dask``; contradictory combinations raise
+    :class:`ValueError` with the reason.
+    """
     dask = args.workers is not None or args.scheduler is not None
+    executor = getattr(args, "executor", None)
+    if executor == "inprocess" and dask:
+        raise ValueError("--executor inprocess cannot be combined with --workers or --scheduler")
+    if executor == "dask" and not dask:
+        raise ValueError("--executor dask needs --workers N (start a local cluster) or "
+                         "--scheduler tcp://HOST:PORT (use an existing one)")
     return {"executor": "dask" if dask else "inprocess", "workers": args.workers,
             "scheduler": args.scheduler, "progress": not args.no_progress}
 

@@ -168,7 +168,12 @@ def _cmd_autolabel(args: argparse.Namespace) -> int:
                         output_dir=str(Path(args.out).resolve()),
                         config={**cfg.to_dict(), **({"vis": True} if args.vis else {})}, seed=args.seed)
              for s in specs]
-    summary = run_batch(tasks, process_target, **executor_kwargs(args))
+    try:
+        where = executor_kwargs(args)
+    except ValueError as exc:
+        print(f"vsrd-mi autolabel: {exc}", file=sys.stderr)
+        return 2
+    summary = run_batch(tasks, process_target, **where)
     print(f"done {summary.done}, skipped {summary.skipped}, failed {summary.failed} of {summary.total}")
     return summary.exit_code()
 
