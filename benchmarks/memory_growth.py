@@ -8,7 +8,9 @@ the first targets (kernel compilation, allocator pools).
 
 Usage::
 
-    python benchmarks/memory_growth.py --runs 40 --steps 60 --out benchmarks/memory_growth.json
+    python benchmarks/memory_growth.py --runs 120 --steps 60 --residual --out benchmarks/memory_growth.json
+
+writes the JSON and a PNG of RSS per run beside it.
 """
 
 from __future__ import annotations
@@ -28,6 +30,23 @@ def rss_mib() -> float:
     raise RuntimeError("no VmRSS in /proc/self/status")
 
 
+def plot(rows: list[dict], summary: dict, path: Path) -> None:
+    """RSS after every target (PNG)."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 3.5))
+    ax.plot([r["run"] for r in rows], [r["rss_mib"] for r in rows], marker=".")
+    ax.set_xlabel("target run in one process")
+    ax.set_ylabel("resident set size (MiB)")
+    ax.set_title(f"memory over {summary['runs']} targets ({summary['steps']} steps each, "
+                 f"residual {'on' if summary['residual'] else 'off'})")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--root", default="scenes/kitti360-synth")
@@ -35,6 +54,8 @@ def main() -> int:
     ap.add_argument("--runs", type=int, default=40)
     ap.add_argument("--steps", type=int, default=60)
     ap.add_argument("--out", default="benchmarks/memory_growth.json")
+    ap.add_argument("--residual", action="store_true",
+                    help="with the residual field (the default preset has none; it holds the largest AD graphs)")
     args = ap.parse_args()
 
     import vsrd_mi  # noqa: F401
@@ -46,7 +67,8 @@ def main() -> int:
 
     seq = Sequence(args.root, args.sequence)
     targets = [s.target for s in select_targets(seq)]
-    cfg = default_config().replace(steps=args.steps, warmup_steps=args.steps // 3).to_dict()
+    cfg = default_config().replace(steps=args.steps, warmup_steps=args.steps // 3,
+                                   residual=args.residual).to_dict()
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         for i in range(args.runs):
@@ -62,7 +84,7 @@ def main() -> int:
     n = len(rows)
     first, second = rows[: n // 2], rows[n // 2:]
     summary = {
-        "runs": n, "steps": args.steps, "targets": targets,
+        "runs": n, "steps": args.steps, "residual": args.residual, "targets": targets,
         "rss_after_first_cycle_mib": rows[min(len(targets), n) - 1]["rss_mib"],
         "rss_final_mib": rows[-1]["rss_mib"],
         "mean_rss_first_half_mib": sum(r["rss_mib"] for r in first) / max(len(first), 1),
@@ -71,6 +93,7 @@ def main() -> int:
     summary["growth_per_run_second_half_mib"] = (
         (second[-1]["rss_mib"] - second[0]["rss_mib"]) / max(len(second) - 1, 1) if len(second) > 1 else None)
     Path(args.out).write_text(json.dumps({"summary": summary, "rows": rows}, indent=1))
+    plot(rows, summary, Path(args.out).with_suffix(".png"))
     print(json.dumps(summary, indent=1))
     return 0
 
