@@ -144,8 +144,9 @@ def _cmd_autolabel(args: argparse.Namespace) -> int:
     from ..batch.runner import run_batch
 
     cfg = PRESETS[args.config]()
-    try:
+    try:  # argument errors before any dataset I/O
         cfg = cfg.with_overrides(args.set or [])
+        where = executor_kwargs(args)
     except ValueError as exc:
         print(f"vsrd-mi autolabel: {exc}", file=sys.stderr)
         return 2
@@ -168,11 +169,6 @@ def _cmd_autolabel(args: argparse.Namespace) -> int:
                         output_dir=str(Path(args.out).resolve()),
                         config={**cfg.to_dict(), **({"vis": True} if args.vis else {})}, seed=args.seed)
              for s in specs]
-    try:
-        where = executor_kwargs(args)
-    except ValueError as exc:
-        print(f"vsrd-mi autolabel: {exc}", file=sys.stderr)
-        return 2
     summary = run_batch(tasks, process_target, **where)
     print(f"done {summary.done}, skipped {summary.skipped}, failed {summary.failed} of {summary.total}")
     return summary.exit_code()

@@ -164,10 +164,9 @@ class AutolabelConfig:
             except json.JSONDecodeError:
                 value = text
             old = node[leaf]
-            if isinstance(old, bool) != isinstance(value, bool) or (
-                    isinstance(old, (int, float)) and not isinstance(value, (int, float))) or (
-                    isinstance(old, int) and not isinstance(old, bool) and not isinstance(value, int)) or (
-                    isinstance(old, str) and not isinstance(value, str)):
+            # a float field takes any number; other fields exactly their own type (bool is no int)
+            accepted = (int, float) if isinstance(old, float) else type(old)
+            if isinstance(value, bool) != isinstance(old, bool) or not isinstance(value, accepted):
                 raise ValueError(f"--set {key}: {text!r} is not a valid {type(old).__name__} value")
             node[leaf] = float(value) if isinstance(old, float) else value
         return AutolabelConfig.from_dict(d)

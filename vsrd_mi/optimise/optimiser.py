@@ -140,9 +140,6 @@ class BoxOptimiser:
             bad = ~np.isfinite(getattr(obs, name)).reshape(obs.num_frames, -1).all(axis=1)
             if bad.any():
                 raise ValueError(f"target {obs.target}: non-finite {name} of frame(s) {obs.frames[bad].tolist()}")
-        for b in boxes:
-            if not (np.all(np.isfinite(b.centre)) and np.all(np.isfinite(b.velocity)) and np.isfinite(b.yaw)):
-                raise ValueError(f"target {obs.target}: non-finite start box of instance {b.instance_id}")
         self.obs, self.cfg = obs, cfg
         self.n = obs.num_instances
         self.dynamic = np.array([b.dynamic for b in boxes], dtype=bool) & cfg.velocity
