@@ -303,8 +303,8 @@ def _layer_norm_features(x: mi.TensorXf, eps: float = 1e-5) -> mi.TensorXf:
     return xc / dr.sqrt(var + eps)
 
 
-def concat(arrays: Sequence[mi.Float], width: int | None = None, stride: int | None = None) -> mi.Float:
-    """Concatenate Float arrays (differentiably) without baking sizes into kernels.
+def concat(arrays: Sequence, width: int | None = None, stride: int | None = None):
+    """Concatenate Float (or UInt32) arrays (differentiably) without baking sizes into kernels.
 
     ``dr.concat`` compiles its offsets into the kernel, so concatenating arrays whose widths change
     every call recompiles every call; here the offsets are opaque. With ``stride``, array ``i``
@@ -314,7 +314,7 @@ def concat(arrays: Sequence[mi.Float], width: int | None = None, stride: int | N
     starts = ([i * stride for i in range(len(arrays))] if stride is not None
               else np.concatenate([[0], np.cumsum(widths)[:-1]]).astype(int).tolist())
     total = width if width is not None else int(starts[-1] + widths[-1])
-    out = dr.zeros(mi.Float, total)
+    out = dr.zeros(type(arrays[0]), total)
     for a, w, s0 in zip(arrays, widths, starts):
         dr.scatter(out, a, dr.arange(mi.UInt32, w) + dr.opaque(mi.UInt32, int(s0)))
     return out
@@ -520,10 +520,14 @@ class InstanceField:
 
     def view(self, dec: DecodedBoxes, k: int, time: mi.Float, width: int) -> BoxView:
         """Instance ``k`` broadcast to ``width`` lanes at per-lane ray time ``time``."""
-        ik = dr.full(mi.UInt32, k, width)
+        return self.view_lanes(dec, dr.full(mi.UInt32, k, width), time)
+
+    @staticmethod
+    def view_lanes(dec: DecodedBoxes, inst: mi.UInt32, time: mi.Float) -> BoxView:
+        """Instance ``inst[i]`` at lane ``i`` (per-lane gathers) at per-lane ray time ``time``."""
 
         def g(a):
-            return dr.gather(mi.Float, a, ik)
+            return dr.gather(mi.Float, a, inst)
 
         m = g(dec.dynamic) * time
         centre = mi.Point3f(*[g(dec.centre[j]) + m * g(dec.velocity[j]) for j in range(3)])
@@ -558,27 +562,49 @@ class InstanceField:
         """
         width = dr.width(p.x)
         ks = list(range(self.n) if instances is None else instances)
-        out, local, idxs = [], [], []
+        out, parts = [], []
         for k in ks:
             bv = self.view(dec, k, time, width)
             pl = bv.to_local(p)
             out.append(box_sdf_local(pl, bv.half))
             if weights is not None:
                 with dr.suspend_grad():
-                    inside = dr.all(dr.abs(pl) <= bv.half + reach)
-                idxs.append(dr.compress(inside))
-                local.append(pl)
+                    parts.append((k, pl, dr.all(dr.abs(pl) <= bv.half + reach)))
         if weights is None:
             return out
+        return [f + r for f, r in zip(out, self._residual_terms(weights, parts, width))]
+
+    def lane_sdfs(self, dec: DecodedBoxes, p: mi.Point3f, time: mi.Float, inst: mi.UInt32,
+                  weights: mi.TensorXf | None = None, reach: float | mi.Float = 0.0) -> mi.Float:
+        """SDF of instance ``inst[i]`` at point ``p[i]`` (one instance per lane).
+
+        The per-lane counterpart of :meth:`instance_sdfs` for samplers that evaluate only the
+        instances a ray can meet; the residual is added under the same ``reach`` rule.
+        """
+        bv = self.view_lanes(dec, inst, time)
+        pl = bv.to_local(p)
+        f = box_sdf_local(pl, bv.half)
+        if weights is None:
+            return f
+        with dr.suspend_grad():
+            inside = dr.all(dr.abs(pl) <= bv.half + reach)
+        parts = [(k, pl, inside & (inst == k)) for k in range(self.n)]
+        for r in self._residual_terms(weights, parts, dr.width(f)):
+            f = f + r
+        return f
+
+    def _residual_terms(self, weights: mi.TensorXf, parts: list, width: int) -> list[mi.Float]:
+        """Residuals of ``parts = [(instance, box-local points, mask)]`` on ``width`` lanes (zero
+        outside each mask), all instances in one batched MLP evaluation."""
+        idxs = [dr.compress(mask) for _, _, mask in parts]
+        out = [dr.zeros(mi.Float, width) for _ in parts]
         live = [i for i, idx in enumerate(idxs) if dr.width(idx) > 0]
         if not live:
             return out
-        pts = [mi.Vector3f(*[dr.gather(mi.Float, c, idxs[i]) for c in local[i]]) for i in live]
-        res = self.residual.evaluate_grouped(weights, [ks[i] for i in live], pts)
+        pts = [mi.Vector3f(*[dr.gather(mi.Float, c, idxs[i]) for c in parts[i][1]]) for i in live]
+        res = self.residual.evaluate_grouped(weights, [parts[i][0] for i in live], pts)
         for i, r in zip(live, res):
-            extra = dr.zeros(mi.Float, width)
-            dr.scatter_add(extra, r, idxs[i])
-            out[i] = out[i] + extra
+            dr.scatter_add(out[i], r, idxs[i])
         return out
 
 

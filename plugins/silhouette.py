@@ -19,8 +19,9 @@ r"""Instance-aware NeuS silhouette integrator (``vsrd_silhouette``).
      (Default: 10, 0.1)
  * - band_samples, max_bands, reach
    - |int|, |int|, |float|
-   - Adaptive sampling: ``K`` samples per band, at most ``B`` bands per ray (0: no limit), band
-     half-width and culling margin ``reach / s``. (Default: 16, 0, 8)
+   - Adaptive sampling: ``K`` samples per band, at most ``B`` bands (instances) per ray (0: no
+     limit), band half-width ``reach / s`` and culling margin ``reach * max(1/s, tau)``.
+     (Default: 16, 0, 8)
  * - coarse_samples, fine_samples
    - |int|
    - Dense sampling: stratified coarse and importance fine sample counts. (Default: 100, 100)
@@ -62,12 +63,16 @@ resolve the minima and descents of ``f``, which is what the two sampling strateg
   ``fine_samples`` importance samples from the coarse weights (guarded against rays whose coarse
   weights vanish), merged in order; every instance evaluated at every sample.
 * ``adaptive``: per ray and instance, a ray/box slab test against the box enlarged by
-  ``reach / s`` (plus the residual's reach) culls the instance; for each remaining instance a
+  ``reach * max(1/s, tau)`` (plus the residual's reach) culls the instance: beyond that margin its
+  opacity and its softmin share next to a surface are below ``exp(-reach)``, so it is not
+  evaluated at that ray's samples at all (one SDF evaluation per sample and *met* instance, not
+  per instance of the scene); for each remaining instance a
   detached golden-section search on the (convex) box SDF finds the closest approach ``t*`` and
   the slab test the surface entry. Each such instance gets a band of ``K`` samples of half-width
   ``reach / s`` at its entry (hit) or ending at ``t*`` (miss), plus its enlarged-box entry and
   the closest approach, so the minimum of ``f`` is sampled exactly (for a miss the gradient is
-  then the exact envelope gradient). At most ``B`` bands (nearest first) per ray; rays that meet
+  then the exact envelope gradient). At most ``B`` bands (nearest first) per ray, and only those
+  ``B`` instances are evaluated on it; rays that meet
   no enlarged box return background at zero cost (they are compacted away). Only sample
   positions are detached; SDF values at samples carry gradients.
 
@@ -209,37 +214,81 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
             time = dr.full(mi.Float, time[0], n_rays)
         o, d = dr.detach(o), dr.detach(d)
         dec = self.field.decode()
-        if self.cfg.sampling == "dense":
-            t, m = self._dense_positions(dec, o, d, time)
-            groups = [(dr.arange(mi.UInt32, n_rays), t, m, mi.Bool(True))]
-        else:
-            groups = self._adaptive_groups(dec, o, d, time)
-        groups = list(groups)
-        out = [dr.zeros(mi.Float, n_rays) for _ in range(self.field.n)]
         self.last_stats = {"rays": 0, "samples": 0, "sdf_evals": 0}
-        if not groups:
-            return out + [dr.ones(mi.Float, n_rays)]
-        # one SDF evaluation for the samples of every group (the residual MLP then runs once)
-        pos = [self._positions(ray_idx, o, d, time, t, m) for ray_idx, t, m, _ in groups]
-        sdfs = self._sdfs(dec, pos)
-        for (ray_idx, t, m, active), sdf in zip(groups, sdfs):
-            labels = self._integrate(sdf, m)
-            for k, lab in enumerate(labels):
-                if self.cfg.sampling == "dense":
-                    out[k] = lab
-                else:
-                    dr.scatter_add(out[k], lab, ray_idx, active)
-            n = dr.width(ray_idx)
-            for key, v in (("rays", n), ("samples", n * m), ("sdf_evals", n * m * self.field.n)):
-                self.last_stats[key] += v
-        total = out[0]
-        for lab in out[1:]:
+        if self.cfg.sampling == "dense":
+            labels = self._render_dense(dec, o, d, time)
+        else:
+            labels = self._render_adaptive(dec, o, d, time)
+        if labels is None:  # no ray meets any (enlarged) box
+            return [dr.zeros(mi.Float, n_rays) for _ in range(self.field.n)] + [dr.ones(mi.Float, n_rays)]
+        total = labels[0]
+        for lab in labels[1:]:
             total = total + lab
-        return out + [1.0 - total]
+        return labels + [1.0 - total]
+
+    def _count(self, rays: int, samples_per_ray: int, instances: int) -> None:
+        for key, v in (("rays", rays), ("samples", rays * samples_per_ray),
+                       ("sdf_evals", rays * samples_per_ray * instances)):
+            self.last_stats[key] += v
+
+    def _render_dense(self, dec, o, d, time) -> list[mi.Float]:
+        """Every instance at every one of the ``coarse + fine`` samples of every ray."""
+        n_rays = dr.width(o.x)
+        t, m = self._dense_positions(dec, o, d, time)
+        labels = self.integrate_at(dec, dr.arange(mi.UInt32, n_rays), o, d, time, t, m)
+        self._count(n_rays, m, self.field.n)
+        return labels
+
+    def _render_adaptive(self, dec, o, d, time) -> list[mi.Float] | None:
+        """Band samples of the rays that meet an enlarged box; at each sample only the instances
+        whose enlarged box the ray meets (one SDF evaluation per lane and met instance)."""
+        n_rays, n_inst = dr.width(o.x), self.field.n
+        groups = list(self._adaptive_groups(dec, o, d, time))
+        if not groups:
+            return None
+        # one flat list of (point, time, instance) lanes for every group and band slot, so the
+        # SDF (and the residual MLP) is evaluated in one batch
+        with dr.suspend_grad():
+            pts, tms, insts = [], [], []
+            for rays, t, m, active, slot_inst in groups:
+                p, tg = self._positions(rays, o, d, time, t, m)
+                r = dr.arange(mi.UInt32, dr.width(t)) // m
+                for ib in slot_inst:
+                    pts.append(p)
+                    tms.append(tg)
+                    insts.append(dr.gather(mi.UInt32, ib, r))
+            p_all = mi.Point3f(*[concat([q[j] for q in pts]) for j in range(3)])
+            t_all, i_all = concat(tms), concat(insts)
+        f_all = self.field.lane_sdfs(dec, p_all, t_all, i_all, self.field.residual_weights(),
+                                     reach=self._residual_reach())
+        flat = dr.zeros(mi.Float, n_rays * n_inst)
+        start = 0
+        for rays, t, m, active, slot_inst in groups:
+            w = dr.width(t)
+            sdfs = [dr.gather(mi.Float, f_all, dr.arange(mi.UInt32, w) + dr.opaque(mi.UInt32, start + b * w))
+                    for b in range(len(slot_inst))]
+            start += w * len(slot_inst)
+            for lab, ib in zip(self._integrate(sdfs, m), slot_inst):
+                dr.scatter_add(flat, lab, rays * n_inst + ib, active)
+            self._count(dr.width(rays), m, len(slot_inst))
+        idx = dr.arange(mi.UInt32, n_rays) * n_inst
+        return [dr.gather(mi.Float, flat, idx + k) for k in range(n_inst)]
 
     def _reach(self) -> mi.Float:
-        """Band half-width / culling margin in scene units."""
+        """Band half-width ``reach / s`` in scene units."""
         return self.cfg.reach / self.sharpness
+
+    def _cull_margin(self) -> mi.Float:
+        """Box SDF value beyond which an instance is dropped from a ray: ``reach * max(1/s, tau)``.
+
+        Past it both its opacity (``Phi_s``) and its softmin label share next to a surface are
+        below ``exp(-reach)``."""
+        return self.cfg.reach * dr.maximum(1.0 / self.sharpness, self.temperature)
+
+    def _residual_reach(self) -> mi.Float:
+        """Where the residual is evaluated: inside boxes enlarged by the culling margin plus the
+        residual's own reach (an opaque Float: a literal would recompile whenever s changes)."""
+        return dr.detach(self._cull_margin()) + self.field.residual_reach
 
     @staticmethod
     def _positions(ray_idx: mi.UInt32, o, d, time, t: mi.Float, m: int):
@@ -249,31 +298,12 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
             r = dr.gather(mi.UInt32, ray_idx, dr.arange(mi.UInt32, n * m) // m)
             return dr.gather(mi.Point3f, o, r) + t * dr.gather(mi.Vector3f, d, r), dr.gather(mi.Float, time, r)
 
-    def _sdfs(self, dec, pos: list) -> list[list[mi.Float]]:
-        """Instance SDFs at the sample points of every group, evaluated in one batch."""
-        widths = [dr.width(p.x) for p, _ in pos]
-        if len(pos) == 1:
-            p, tg = pos[0]
-        else:
-            with dr.suspend_grad():
-                p = mi.Point3f(*[concat([q[j] for q, _ in pos]) for j in range(3)])
-                tg = concat([tt for _, tt in pos])
-        # an opaque Float, not a Python float: a literal would recompile whenever s changes
-        reach = dr.detach(self._reach()) + self.field.residual_reach
-        sdfs = self.field.instance_sdfs(dec, p, tg, self.field.residual_weights(), reach=reach)
-        if len(pos) == 1:
-            return [sdfs]
-        out, start = [], 0
-        for w in widths:
-            idx = dr.arange(mi.UInt32, w) + dr.opaque(mi.UInt32, start)
-            out.append([dr.gather(mi.Float, f, idx) for f in sdfs])
-            start += w
-        return out
-
     def integrate_at(self, dec, ray_idx: mi.UInt32, o, d, time, t: mi.Float, m: int) -> list[mi.Float]:
         """Labels of rays ``ray_idx`` from the NeuS integral at given sorted samples ``t``
         (``m`` per ray): the integral both strategies use, for references and tests."""
-        return self._integrate(self._sdfs(dec, [self._positions(ray_idx, o, d, time, t, m)])[0], m)
+        p, tg = self._positions(ray_idx, o, d, time, t, m)
+        return self._integrate(self.field.instance_sdfs(dec, p, tg, self.field.residual_weights(),
+                                                        reach=self._residual_reach()), m)
 
     def _integrate(self, sdfs: list[mi.Float], m: int) -> list[mi.Float]:
         """Differentiable NeuS integral of instance SDFs at ``m`` sorted samples per ray."""
@@ -333,7 +363,7 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
             p = dr.gather(mi.Point3f, o, r) + tc * dr.gather(mi.Vector3f, d, r)
             tg = dr.gather(mi.Float, time, r)
             f = scene_sdf(self.field.instance_sdfs(dec, p, tg, self.field.residual_weights(),
-                                                   reach=dr.detach(self._reach()) + self.field.residual_reach))
+                                                   reach=self._residual_reach()))
             last = i == (nc - 1)
             f_next = dr.gather(mi.Float, f, dr.select(last, lane, lane + 1))
             s = self.sharpness
@@ -374,9 +404,10 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
     def _adaptive_bands(self, dec, o, d, time):
         """Detached per-ray band search.
 
-        Returns ``(ray_idx, count, slots)``: indices of rays meeting at least one enlarged box,
-        their number of bands, and per slot ``(entry, lo, mid, hi, extra)`` arrays (slots sorted by
-        band centre; a ray's valid slots come first).
+        Returns ``(ray_idx, count, slots, slot_inst)``: indices of rays meeting at least one
+        enlarged box, their number of bands, per slot ``(entry, lo, mid, hi, extra)`` arrays (slots
+        sorted by band centre; a ray's valid slots come first) and per slot the band's instance
+        (``num_instances`` for an empty slot).
         """
         cfg = self.cfg
         n_inst = self.field.n
@@ -384,7 +415,7 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         big = 1e30
         with dr.suspend_grad():
             w = self._reach()
-            margin = w + self.field.residual_reach
+            margin = self._cull_margin() + self.field.residual_reach
             views, entry, exit_, hit, tin, act = [], [], [], [], [], []
             for k in range(n_inst):
                 bv = self.field.view(dec, k, time, n)
@@ -403,7 +434,7 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
                 any_act |= a
             ray_idx = dr.compress(any_act)
             if dr.width(ray_idx) == 0:
-                return ray_idx, None, []
+                return ray_idx, None, [], []
 
             def sel(x, ty=mi.Float):
                 return dr.gather(ty, x, ray_idx)
@@ -453,7 +484,7 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
             centre = [dr.select(hit[k], tin[k], tstar[k]) for k in range(n_inst)]
             keys = [dr.select(act[k], centre[k], big) for k in range(n_inst)]
             count = mi.UInt32(0)
-            slots = []
+            slots, slot_inst = [], []
             n_slots = n_inst if cfg.max_bands <= 0 else min(cfg.max_bands, n_inst)
             for _ in range(n_slots):
                 best = mi.Float(big)
@@ -481,8 +512,9 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
                 hi = dr.maximum(dr.select(hb, dr.minimum(c + w, dr.maximum(ts, c)), e1), mid)
                 extra = dr.maximum(dr.select(hb, ts, e1), hi)
                 slots.append(tuple(dr.select(valid, v, cfg.far) for v in (e0, lo, mid, hi, extra)))
-            dr.eval(count, slots)
-        return ray_idx, count, slots
+                slot_inst.append(kb)
+            dr.eval(count, slots, slot_inst)
+        return ray_idx, count, slots, slot_inst
 
     def _halves(self) -> tuple[int, int]:
         k1 = self.cfg.band_samples // 2
@@ -505,14 +537,15 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
     def _adaptive_groups(self, dec, o, d, time):
         """Sample positions for the adaptive strategy, one group per band count.
 
-        Yields ``(ray_idx, t, m, active)``: rays with exactly ``g`` bands get ``m = g (K + 2)`` samples
+        Yields ``(ray_idx, t, m, active, inst)``: rays with exactly ``g`` bands get ``m = g (K + 2)`` samples
         (entry, ``K`` band samples, closest approach / exit per band), merged in order by a
         closed-form rank (bands are internally sorted), so no per-ray sort is needed. ``active``
-        masks the padding copy of a single-ray group.
+        masks the padding copy of a single-ray group; ``inst`` holds the ``g`` band instances of
+        each ray (the only instances evaluated at its samples).
         """
         kk = self.cfg.band_samples
         per = kk + 2
-        ray_idx, count, slots = self._adaptive_bands(dec, o, d, time)
+        ray_idx, count, slots, slot_inst = self._adaptive_bands(dec, o, d, time)
         if not slots:
             return
         for g in range(1, len(slots) + 1):
@@ -563,5 +596,6 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
                 ts = dr.zeros(mi.Float, na * m)
                 dr.scatter(ts, t, r * m + rank)
                 rays = dr.gather(mi.UInt32, ray_idx, sub)
+                inst = [dr.gather(mi.UInt32, slot_inst[b], sub) for b in range(g)]
             # yield outside ``suspend_grad``: the consumer differentiates the integral
-            yield rays, ts, m, active
+            yield rays, ts, m, active, inst
