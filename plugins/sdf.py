@@ -568,11 +568,14 @@ class InstanceField:
             pl = bv.to_local(p)
             out.append(box_sdf_local(pl, bv.half))
             if weights is not None:
-                with dr.suspend_grad():
-                    parts.append((k, pl, dr.all(dr.abs(pl) <= bv.half + reach)))
+                parts.append((k, pl, _near_box(pl, bv.half, reach)))
         if weights is None:
             return out
-        return [f + r for f, r in zip(out, self._residual_terms(weights, parts, width))]
+        for i, lanes, r in self._residuals(weights, parts):
+            extra = dr.zeros(mi.Float, width)
+            dr.scatter_add(extra, r, lanes)
+            out[i] = out[i] + extra
+        return out
 
     def lane_sdfs(self, dec: DecodedBoxes, p: mi.Point3f, time: mi.Float, inst: mi.UInt32,
                   weights: mi.TensorXf | None = None, reach: float | mi.Float = 0.0) -> mi.Float:
@@ -586,26 +589,29 @@ class InstanceField:
         f = box_sdf_local(pl, bv.half)
         if weights is None:
             return f
-        with dr.suspend_grad():
-            inside = dr.all(dr.abs(pl) <= bv.half + reach)
-        parts = [(k, pl, inside & (inst == k)) for k in range(self.n)]
-        for r in self._residual_terms(weights, parts, dr.width(f)):
-            f = f + r
-        return f
+        near = _near_box(pl, bv.half, reach)
+        # the instances' lane sets are disjoint: one array takes every residual
+        extra = dr.zeros(mi.Float, dr.width(f))
+        for _, lanes, r in self._residuals(weights, [(k, pl, near & (inst == k)) for k in range(self.n)]):
+            dr.scatter_add(extra, r, lanes)
+        return f + extra
 
-    def _residual_terms(self, weights: mi.TensorXf, parts: list, width: int) -> list[mi.Float]:
-        """Residuals of ``parts = [(instance, box-local points, mask)]`` on ``width`` lanes (zero
-        outside each mask), all instances in one batched MLP evaluation."""
+    def _residuals(self, weights: mi.TensorXf, parts: list) -> list[tuple[int, mi.UInt32, mi.Float]]:
+        """Residuals of ``parts = [(instance, box-local points, mask)]`` where the masks hold, all
+        instances in one batched MLP evaluation: ``(part index, lanes, values)`` per non-empty part."""
         idxs = [dr.compress(mask) for _, _, mask in parts]
-        out = [dr.zeros(mi.Float, width) for _ in parts]
         live = [i for i, idx in enumerate(idxs) if dr.width(idx) > 0]
         if not live:
-            return out
+            return []
         pts = [mi.Vector3f(*[dr.gather(mi.Float, c, idxs[i]) for c in parts[i][1]]) for i in live]
         res = self.residual.evaluate_grouped(weights, [parts[i][0] for i in live], pts)
-        for i, r in zip(live, res):
-            dr.scatter_add(out[i], r, idxs[i])
-        return out
+        return [(i, idxs[i], r) for i, r in zip(live, res)]
+
+
+def _near_box(p_local: mi.Vector3f, half: mi.Vector3f, reach) -> mi.Bool:
+    """Points inside the box enlarged by ``reach`` in every local axis (detached mask)."""
+    with dr.suspend_grad():
+        return dr.all(dr.abs(p_local) <= half + reach)
 
 
 def scene_sdf(sdfs: Sequence[mi.Float]) -> mi.Float:

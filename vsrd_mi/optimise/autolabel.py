@@ -158,8 +158,8 @@ def _cmd_autolabel(args: argparse.Namespace) -> int:
     selection = SelectionConfig()
     specs = select_targets(seq, selection, frames=_frame_range(args.frames))
     if not specs:
-        where = f"frames {args.frames} of " if args.frames else ""
-        print(f"vsrd-mi autolabel: {seq.instance_dir}: no target frame in {where}{seq.name}: no frame has a car "
+        which = f"frames {args.frames} of " if args.frames else ""
+        print(f"vsrd-mi autolabel: {seq.instance_dir}: no target frame in {which}{seq.name}: no frame has a car "
               f"mask of >= {selection.min_mask_area} px and box side >= {selection.min_box_side:g} px seen in "
               f">= {selection.min_sources} other frames; nothing to label", file=sys.stderr)
         return 1

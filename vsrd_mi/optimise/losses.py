@@ -143,10 +143,10 @@ def init_loss(dec: DecodedBoxes, centre_init: np.ndarray, velocity_init: np.ndar
     n = len(centre_init)
     w = to_float(np.ones(n) if box_weights is None else box_weights)
     per_box = dr.zeros(mi.Float, n)
+    m = to_float(velocity_mask) if velocity_init is not None else None
     for j in range(3):
         per_box = per_box + dr.abs(dec.centre[j] - to_float(centre_init[:, j]))
-        if velocity_init is not None:
-            m = to_float(velocity_mask)
+        if m is not None:
             per_box = per_box + m * dr.abs(dec.velocity[j] - to_float(velocity_init[:, j]))
     return dr.sum(w * per_box) / max(n, 1)
 
