@@ -218,6 +218,61 @@ def box_sdf_local(p: mi.Vector3f, half: mi.Vector3f) -> mi.Float:
     return outside + inside
 
 
+#: Faces within this much (m) of the largest face distance count as meeting at a ridge in
+#: :func:`box_sdf_ray_local`: above the float32 error of box-local coordinates 100 m away and the
+#: adaptive sampler's golden-section bracket (which puts a sample on the ridge), far below 1/s.
+RIDGE_TOLERANCE = 1e-3
+
+
+def box_sdf_ray_local(p: mi.Vector3f, d: mi.Vector3f, half: mi.Vector3f,
+                      tol: float | mi.Float = RIDGE_TOLERANCE) -> mi.Float:
+    r""":func:`box_sdf_local` at a point of a ray with direction ``d``, with the envelope gradient
+    at the ray's deepest point inside the box.
+
+    Inside, ``B = max_j v_j`` over the six face planes ``v = (p_i - h_i, -p_i - h_i)``. Along the
+    ray ``B`` is convex and piecewise linear; its minimum lies on a ridge where a decreasing face
+    ``a`` (slope ``g_a < 0``, ``g = (d_i, -d_i)``) meets an increasing face ``b`` (``g_b > 0``):
+    two adjacent faces, or a face pair's mid-plane. By Danskin's theorem the minimum's derivative
+    w.r.t. any box parameter is
+
+    .. math:: \lambda_a \partial v_a + \lambda_b \partial v_b, \qquad
+              \lambda_a = \frac{g_b}{g_b - g_a}, \; \lambda_b = 1 - \lambda_a
+
+    (the blend whose slope along the ray is zero), while AD of the max follows one face, chosen by
+    which side of the ridge the sample lies on. NeuS opacity telescopes to ``Phi_s`` of a ray's
+    deepest sample, so a one-sided gradient there is the whole gradient of that ray's label. Where
+    the faces within ``tol`` of the max include a decreasing and an increasing one (the most
+    negative and most positive slopes are blended), this returns ``B`` with the blended gradient;
+    elsewhere exactly :func:`box_sdf_local`. ``d`` need not be normalised (``lambda`` is scale-free).
+    """
+    f = box_sdf_local(p, half)
+    faces = [p[i] - half[i] for i in range(3)] + [-p[i] - half[i] for i in range(3)]
+    with dr.suspend_grad():
+        v = [dr.detach(x) for x in faces]
+        m = dr.maximum(dr.maximum(dr.maximum(v[0], v[1]), dr.maximum(v[2], v[3])), dr.maximum(v[4], v[5]))
+        slopes = [d[i] for i in range(3)] + [-d[i] for i in range(3)]
+        ia, ib = mi.UInt32(6), mi.UInt32(6)
+        ga, gb = mi.Float(0.0), mi.Float(0.0)
+        for j in range(6):
+            near = (m - v[j]) <= tol
+            dec_j = near & (slopes[j] < ga)
+            inc_j = near & (slopes[j] > gb)
+            ia, ga = dr.select(dec_j, j, ia), dr.select(dec_j, slopes[j], ga)
+            ib, gb = dr.select(inc_j, j, ib), dr.select(inc_j, slopes[j], gb)
+        ridge = (m < 0.0) & (ia < 6) & (ib < 6)
+        lam = dr.select(ridge, gb / dr.select(ridge, gb - ga, 1.0), 0.0)
+
+    def face(idx):
+        out = faces[5]
+        for j in range(4, -1, -1):
+            out = dr.select(idx == j, faces[j], out)
+        return out
+
+    qa, qb = face(ia), face(ib)
+    blended = dr.detach(f) + lam * (qa - dr.detach(qa)) + (1.0 - lam) * (qb - dr.detach(qb))
+    return dr.select(ridge, blended, f)
+
+
 def box_normal_local(p: mi.Vector3f, half: mi.Vector3f) -> mi.Vector3f:
     """Outward unit gradient of :func:`box_sdf_local` (inside: normal of the nearest face)."""
     q = dr.abs(p) - half
@@ -578,15 +633,21 @@ class InstanceField:
         return out
 
     def lane_sdfs(self, dec: DecodedBoxes, p: mi.Point3f, time: mi.Float, inst: mi.UInt32,
-                  weights: mi.TensorXf | None = None, reach: float | mi.Float = 0.0) -> mi.Float:
+                  weights: mi.TensorXf | None = None, reach: float | mi.Float = 0.0,
+                  ridge: tuple[mi.UInt32, mi.Vector3f, float | mi.Float] | None = None) -> mi.Float:
         """SDF of instance ``inst[i]`` at point ``p[i]`` (one instance per lane).
 
         The per-lane counterpart of :meth:`instance_sdfs` for samplers that evaluate only the
-        instances a ray can meet; the residual is added under the same ``reach`` rule.
+        instances a ray can meet; the residual is added under the same ``reach`` rule. With
+        ``ridge = (lanes, ray directions, tolerance)`` the box part at those lanes, each the
+        deepest point of its ray in its lane's box, carries the envelope gradient
+        (:func:`box_sdf_ray_local`; same values).
         """
         bv = self.view_lanes(dec, inst, time)
         pl = bv.to_local(p)
         f = box_sdf_local(pl, bv.half)
+        if ridge is not None:
+            f = f + self.ridge_correction(dec, p, time, inst, ridge)
         if weights is None:
             return f
         near = _near_box(pl, bv.half, reach)
@@ -595,6 +656,25 @@ class InstanceField:
         for _, lanes, r in self._residuals(weights, [(k, pl, near & (inst == k)) for k in range(self.n)]):
             dr.scatter_add(extra, r, lanes)
         return f + extra
+
+    def ridge_correction(self, dec: DecodedBoxes, p: mi.Point3f, time: mi.Float, inst: mi.UInt32,
+                         ridge: tuple[mi.UInt32, mi.Vector3f, float | mi.Float]) -> mi.Float:
+        """Zero-valued term that turns the box gradient at lanes ``ridge[0]`` (each the deepest
+        point of its ray in its lane's box; ray directions ``ridge[1]``, face tolerance
+        ``ridge[2]``) into the envelope gradient of :func:`box_sdf_ray_local`; only those lanes
+        pay for it. ``inst`` holds each lane's instance (one value: every lane)."""
+        lanes, dirs, tol = ridge
+        with dr.suspend_grad():
+            pr = dr.gather(type(p), p, lanes)
+            tr = dr.gather(mi.Float, time, lanes)
+            ir = inst if dr.width(inst) == 1 else dr.gather(mi.UInt32, inst, lanes)
+        bv = self.view_lanes(dec, ir, tr)
+        pl = bv.to_local(pr)
+        delta = (box_sdf_ray_local(pl, dr.detach(bv.dir_to_local(dirs)), bv.half, tol)
+                 - box_sdf_local(pl, bv.half))
+        out = dr.zeros(mi.Float, dr.width(p.x))
+        dr.scatter_add(out, delta, lanes)
+        return out
 
     def _residuals(self, weights: mi.TensorXf, parts: list) -> list[tuple[int, mi.UInt32, mi.Float]]:
         """Residuals of ``parts = [(instance, box-local points, mask)]`` where the masks hold, all

@@ -25,6 +25,11 @@ r"""Instance-aware NeuS silhouette integrator (``vsrd_silhouette``).
  * - coarse_samples, fine_samples
    - |int|
    - Dense sampling: stratified coarse and importance fine sample counts. (Default: 100, 100)
+ * - ridge_gradients
+   - |bool|
+   - Give each ray's deepest sample inside a box the envelope gradient of the box's minimum
+     along the ray instead of AD's one-sided gradient of the max over faces (see below; values
+     are unchanged). (Default: true)
  * - near, far
    - |float|
    - Integration range along each ray. (Default: 0, 100)
@@ -76,6 +81,20 @@ resolve the minima and descents of ``f``, which is what the two sampling strateg
   no enlarged box return background at zero cost (they are compacted away). Only sample
   positions are detached; SDF values at samples carry gradients.
 
+Gradients at a box's interior ridges
+------------------------------------
+
+Where a ray passes through a box, the telescoping makes its opacity ``1 - Phi_s(f_min) /
+Phi_s(f_0)``: the label's gradient is the gradient of the SDF at the ray's deepest sample. Inside
+a box that sample lies on a ridge of ``max`` over the face planes, where AD follows one face
+(whichever side of the ridge the sample fell on), while the derivative of the true minimum blends
+the two faces meeting there (Danskin; :func:`~vsrd_plugins.sdf.box_sdf_ray_local`). One-sided,
+the gradients of two samplings disagree ray by ray, and neither is the derivative of the
+integral. With ``ridge_gradients`` (default) the deepest sample of each ray in each box (the
+adaptive sampler's exact closest approach of an entered box; for ``dense`` and
+:meth:`integrate_at` the sample of least SDF, within a face tolerance of twice the local
+spacing) carries the envelope gradient; only those samples pay for it.
+
 Usage
 -----
 
@@ -98,8 +117,8 @@ from dataclasses import dataclass
 import drjit as dr
 import mitsuba as mi
 
-from .sdf import (InstanceField, box_sdf_local, concat, ray_box_interval, scene_sdf, softmin_labels,
-                  softplus)
+from .sdf import (RIDGE_TOLERANCE, InstanceField, box_sdf_local, concat, ray_box_interval, scene_sdf,
+                  softmin_labels, softplus)
 
 GOLDEN = 0.6180339887498949
 #: Below this interval opacity the label is taken at the interval midpoint (see _accrual_position).
@@ -120,6 +139,7 @@ class SamplingConfig:
     max_bands: int = 0  # 0: every instance a ray meets gets a band
     reach: float = 8.0
     golden_iterations: int = 24
+    ridge_gradients: bool = True
     coarse_samples: int = 100
     fine_samples: int = 100
     near: float = 0.0
@@ -134,6 +154,7 @@ class SamplingConfig:
             max_bands=int(props.get("max_bands", d.max_bands)),
             reach=float(props.get("reach", d.reach)),
             golden_iterations=int(props.get("golden_iterations", d.golden_iterations)),
+            ridge_gradients=bool(props.get("ridge_gradients", d.ridge_gradients)),
             coarse_samples=int(props.get("coarse_samples", d.coarse_samples)),
             fine_samples=int(props.get("fine_samples", d.fine_samples)),
             near=float(props.get("near", d.near)),
@@ -249,21 +270,28 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         # one flat list of (point, time, instance) lanes for every group and band slot, so the
         # SDF (and the residual MLP) is evaluated in one batch
         with dr.suspend_grad():
-            pts, tms, insts = [], [], []
-            for rays, t, m, active, slot_inst in groups:
-                p, tg = self._positions(rays, o, d, time, t, m)
+            ray_lanes, ts, insts, deep = [], [], [], []
+            for rays, t, m, active, slot_inst, deepest in groups:
                 r = dr.arange(mi.UInt32, dr.width(t)) // m
-                for ib in slot_inst:
-                    pts.append(p)
-                    tms.append(tg)
+                ray_of = dr.gather(mi.UInt32, rays, r)
+                for b, ib in enumerate(slot_inst):
+                    ray_lanes.append(ray_of)
+                    ts.append(t)
                     insts.append(dr.gather(mi.UInt32, ib, r))
-            p_all = mi.Point3f(*[concat([q[j] for q in pts]) for j in range(3)])
-            t_all, i_all = concat(tms), concat(insts)
+                    deep.append(dr.select(deepest == b, 1, 0))
+            ray_all = concat(ray_lanes)
+            p_all, t_all, d_all = self._positions(ray_all, o, d, time, concat(ts), 1)
+            i_all = concat(insts)
+            # lanes at the deepest point of their ray in their instance's box (ridge gradients)
+            deep = dr.compress(concat(deep) > 0)
+            ridge = None
+            if self.cfg.ridge_gradients and dr.width(deep):
+                ridge = (deep, dr.gather(mi.Vector3f, d_all, deep), RIDGE_TOLERANCE)
         f_all = self.field.lane_sdfs(dec, p_all, t_all, i_all, self.field.residual_weights(),
-                                     reach=self._residual_reach())
+                                     reach=self._residual_reach(), ridge=ridge)
         flat = dr.zeros(mi.Float, n_rays * n_inst)
         start = 0
-        for rays, t, m, active, slot_inst in groups:
+        for rays, t, m, active, slot_inst, _ in groups:
             w = dr.width(t)
             sdfs = [dr.gather(mi.Float, f_all, dr.arange(mi.UInt32, w) + dr.opaque(mi.UInt32, start + b * w))
                     for b in range(len(slot_inst))]
@@ -292,18 +320,46 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
 
     @staticmethod
     def _positions(ray_idx: mi.UInt32, o, d, time, t: mi.Float, m: int):
-        """Sample points ``o + t d`` and their ray times for ``m`` samples per ray (detached)."""
+        """Sample points ``o + t d``, their ray times and directions for ``m`` samples per ray
+        (detached)."""
         n = dr.width(ray_idx)
         with dr.suspend_grad():
-            r = dr.gather(mi.UInt32, ray_idx, dr.arange(mi.UInt32, n * m) // m)
-            return dr.gather(mi.Point3f, o, r) + t * dr.gather(mi.Vector3f, d, r), dr.gather(mi.Float, time, r)
+            r = ray_idx if m == 1 else dr.gather(mi.UInt32, ray_idx, dr.arange(mi.UInt32, n * m) // m)
+            dirs = dr.gather(mi.Vector3f, d, r)
+            return dr.gather(mi.Point3f, o, r) + t * dirs, dr.gather(mi.Float, time, r), dirs
 
     def integrate_at(self, dec, ray_idx: mi.UInt32, o, d, time, t: mi.Float, m: int) -> list[mi.Float]:
         """Labels of rays ``ray_idx`` from the NeuS integral at given sorted samples ``t``
         (``m`` per ray): the integral both strategies use, for references and tests."""
-        p, tg = self._positions(ray_idx, o, d, time, t, m)
-        return self._integrate(self.field.instance_sdfs(dec, p, tg, self.field.residual_weights(),
-                                                        reach=self._residual_reach()), m)
+        p, tg, dirs = self._positions(ray_idx, o, d, time, t, m)
+        sdfs = self.field.instance_sdfs(dec, p, tg, self.field.residual_weights(), reach=self._residual_reach())
+        return self._integrate(self._ridge_gradients(dec, sdfs, p, tg, dirs, t, m), m)
+
+    def _ridge_gradients(self, dec, sdfs: list[mi.Float], p, time, dirs, t: mi.Float, m: int) -> list[mi.Float]:
+        """Give each ray's deepest sample inside each box the envelope gradient of the box's
+        minimum along the ray (:func:`~vsrd_plugins.sdf.box_sdf_ray_local`), as the adaptive
+        sampler does at its exact deepest point: the sampled minimum stands in for the true one,
+        within a face tolerance of twice the local sample spacing (slopes are at most 1)."""
+        if not self.cfg.ridge_gradients:
+            return sdfs
+        with dr.suspend_grad():
+            lane = dr.arange(mi.UInt32, dr.width(t))
+            i = lane % m
+            t_next = dr.gather(mi.Float, t, dr.select(i == m - 1, lane, lane + 1))
+            t_prev = dr.gather(mi.Float, t, dr.select(i == 0, lane, lane - 1))
+            tol = dr.maximum(2.0 * dr.maximum(t_next - t, t - t_prev), RIDGE_TOLERANCE)
+            ray = lane // m
+        out = []
+        for k, f in enumerate(sdfs):
+            with dr.suspend_grad():
+                fmin = dr.block_reduce(dr.ReduceOp.Min, dr.detach(f), m)
+                lanes = dr.compress((dr.detach(f) <= dr.gather(mi.Float, fmin, ray)) & (dr.detach(f) < 0.0))
+            if dr.width(lanes) == 0:
+                out.append(f)
+                continue
+            ridge = (lanes, dr.gather(mi.Vector3f, dirs, lanes), dr.gather(mi.Float, tol, lanes))
+            out.append(f + self.field.ridge_correction(dec, p, time, mi.UInt32(k), ridge))
+        return out
 
     def _integrate(self, sdfs: list[mi.Float], m: int) -> list[mi.Float]:
         """Differentiable NeuS integral of instance SDFs at ``m`` sorted samples per ray."""
@@ -404,10 +460,11 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
     def _adaptive_bands(self, dec, o, d, time):
         """Detached per-ray band search.
 
-        Returns ``(ray_idx, count, slots, slot_inst)``: indices of rays meeting at least one
-        enlarged box, their number of bands, per slot ``(entry, lo, mid, hi, extra)`` arrays (slots
-        sorted by band centre; a ray's valid slots come first) and per slot the band's instance
-        (``num_instances`` for an empty slot).
+        Returns ``(ray_idx, count, slots, slot_inst, slot_hit)``: indices of rays meeting at least
+        one enlarged box, their number of bands, per slot ``(entry, lo, mid, hi, extra)`` arrays
+        (slots sorted by band centre; a ray's valid slots come first), per slot the band's instance
+        (``num_instances`` for an empty slot) and whether the ray enters that box (then ``extra``
+        is the deepest point of the box along the ray).
         """
         cfg = self.cfg
         n_inst = self.field.n
@@ -434,7 +491,7 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
                 any_act |= a
             ray_idx = dr.compress(any_act)
             if dr.width(ray_idx) == 0:
-                return ray_idx, None, [], []
+                return ray_idx, None, [], [], []
 
             def sel(x, ty=mi.Float):
                 return dr.gather(ty, x, ray_idx)
@@ -484,7 +541,7 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
             centre = [dr.select(hit[k], tin[k], tstar[k]) for k in range(n_inst)]
             keys = [dr.select(act[k], centre[k], big) for k in range(n_inst)]
             count = mi.UInt32(0)
-            slots, slot_inst = [], []
+            slots, slot_inst, slot_hit = [], [], []
             n_slots = n_inst if cfg.max_bands <= 0 else min(cfg.max_bands, n_inst)
             for _ in range(n_slots):
                 best = mi.Float(big)
@@ -513,8 +570,9 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
                 extra = dr.maximum(dr.select(hb, ts, e1), hi)
                 slots.append(tuple(dr.select(valid, v, cfg.far) for v in (e0, lo, mid, hi, extra)))
                 slot_inst.append(kb)
-            dr.eval(count, slots, slot_inst)
-        return ray_idx, count, slots, slot_inst
+                slot_hit.append(valid & hb)
+            dr.eval(count, slots, slot_inst, slot_hit)
+        return ray_idx, count, slots, slot_inst, slot_hit
 
     def _halves(self) -> tuple[int, int]:
         k1 = self.cfg.band_samples // 2
@@ -537,15 +595,16 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
     def _adaptive_groups(self, dec, o, d, time):
         """Sample positions for the adaptive strategy, one group per band count.
 
-        Yields ``(ray_idx, t, m, active, inst)``: rays with exactly ``g`` bands get ``m = g (K + 2)`` samples
+        Yields ``(ray_idx, t, m, active, inst, deepest)``: rays with exactly ``g`` bands get ``m = g (K + 2)`` samples
         (entry, ``K`` band samples, closest approach / exit per band), merged in order by a
         closed-form rank (bands are internally sorted), so no per-ray sort is needed. ``active``
         masks the padding copy of a single-ray group; ``inst`` holds the ``g`` band instances of
-        each ray (the only instances evaluated at its samples).
+        each ray (the only instances evaluated at its samples); ``deepest`` is, per sample, the band
+        whose box's deepest point along the ray this sample is (``g`` for none).
         """
         kk = self.cfg.band_samples
         per = kk + 2
-        ray_idx, count, slots, slot_inst = self._adaptive_bands(dec, o, d, time)
+        ray_idx, count, slots, slot_inst, slot_hit = self._adaptive_bands(dec, o, d, time)
         if not slots:
             return
         for g in range(1, len(slots) + 1):
@@ -595,7 +654,12 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
                     rank += dr.select(band == b, 0, cnt)
                 ts = dr.zeros(mi.Float, na * m)
                 dr.scatter(ts, t, r * m + rank)
+                hit = mi.Bool(False)
+                for b in range(g):
+                    hit = dr.select(band == b, dr.gather(mi.Bool, slot_hit[b], rows), hit)
+                deepest = dr.zeros(mi.UInt32, na * m)
+                dr.scatter(deepest, dr.select(hit & (j == per - 1), band, g), r * m + rank)
                 rays = dr.gather(mi.UInt32, ray_idx, sub)
                 inst = [dr.gather(mi.UInt32, slot_inst[b], sub) for b in range(g)]
             # yield outside ``suspend_grad``: the consumer differentiates the integral
-            yield rays, ts, m, active, inst
+            yield rays, ts, m, active, inst, deepest

@@ -10,7 +10,7 @@ import drjit as dr
 import mitsuba as mi
 
 from vsrd_plugins.sdf import (BoxRanges, InstanceField, ResidualConfig, box_sdf_local,
-                              instance_properties, sigmoid, softplus)
+                              box_sdf_ray_local, instance_properties, sigmoid, softplus)
 
 
 def np_box_sdf(p: np.ndarray, half: np.ndarray) -> np.ndarray:
@@ -72,6 +72,77 @@ def test_box_sdf_gradients_finite(where):
     assert gn <= 1.0 + 1e-6
     if where in ("inside", "outside", "face"):
         assert gn == pytest.approx(1.0, abs=1e-6)
+
+
+def np_ray_min(o: np.ndarray, d: np.ndarray, half: np.ndarray) -> tuple[float, float]:
+    """``(t*, min_t B(o + t d))`` of the inside box SDF along a ray, by float64 ternary search
+    (``B`` is convex along a line); independent of the plugin's formulas."""
+    def b(t):
+        return float(np.max(np.abs(o + t * d) - half))
+    lo, hi = -20.0, 20.0
+    for _ in range(200):
+        m1, m2 = lo + (hi - lo) / 3, hi - (hi - lo) / 3
+        lo, hi = (lo, m2) if b(m1) < b(m2) else (m1, hi)
+    t = 0.5 * (lo + hi)
+    return t, b(t)
+
+
+def test_box_sdf_ray_gradient_is_the_envelope_gradient():
+    """At a ray's deepest point inside a box, the gradient w.r.t. the half extents and the box
+    position is that of ``min_t B`` (central differences of the brute-force minimum), which a
+    one-sided max gradient is not; values equal :func:`box_sdf_local` everywhere."""
+    rng = np.random.default_rng(7)
+    half = np.array([0.9, 0.75, 2.2])
+    eps = 1e-4
+    worst_env, worst_plain = 0.0, 0.0
+    for _ in range(40):
+        o = rng.uniform(-0.6, 0.6, 3) * half
+        d = rng.normal(size=3)
+        d /= np.linalg.norm(d)
+        t, _ = np_ray_min(o, d, half)
+        p = o + t * d
+        # central differences of min_t B w.r.t. half (3) and a box shift c (p -> p - c, 3)
+        fd = []
+        for j in range(6):
+            step = np.zeros(6)
+            step[j] = eps
+            vals = [np_ray_min(o - sg * step[3:], d, half + sg * step[:3])[1] for sg in (1, -1)]
+            fd.append((vals[0] - vals[1]) / (2 * eps))
+        fd = np.array(fd)
+        grads = {}
+        for name, fn in (("env", lambda pv, hv: box_sdf_ray_local(pv, mi.Vector3f(*d.tolist()), hv)),
+                         ("plain", box_sdf_local)):
+            pv = mi.Vector3f(*[dr.opaque(mi.Float, v) for v in p])
+            hv = mi.Vector3f(*[dr.opaque(mi.Float, v) for v in half])
+            dr.enable_grad(pv, hv)
+            f = fn(pv, hv)
+            dr.backward(f)
+            # a box shift c moves p by -c: dB/dc = -dB/dp
+            grads[name] = np.array([dr.grad(c)[0] for c in hv] + [-dr.grad(c)[0] for c in pv])
+            assert float(f[0]) == pytest.approx(float(np.max(np.abs(p) - half)), abs=1e-5)
+        worst_env = max(worst_env, np.abs(grads["env"] - fd).max())
+        worst_plain = max(worst_plain, np.abs(grads["plain"] - fd).max())
+    assert worst_env < 1e-2, worst_env
+    assert worst_plain > 0.2  # the check can fail: the one-sided gradient is far off somewhere
+
+
+def test_box_sdf_ray_equals_plain_off_ridges():
+    """Away from a ray's deepest point (and outside) values and gradients are box_sdf_local's."""
+    rng = np.random.default_rng(8)
+    half = mi.Vector3f(0.9, 0.75, 2.2)
+    p = rng.uniform(-3, 3, (500, 3))
+    d = rng.normal(size=(500, 3))
+    pv, dv = vec(p), vec(d)
+    dr.enable_grad(pv)
+    f_ray = box_sdf_ray_local(pv, dv, half)
+    dr.backward(f_ray)
+    g_ray = np.array(dr.grad(pv))
+    pv2 = vec(p)
+    dr.enable_grad(pv2)
+    f_plain = box_sdf_local(pv2, half)
+    dr.backward(f_plain)
+    np.testing.assert_array_equal(np.array(f_ray), np.array(f_plain))
+    np.testing.assert_array_equal(g_ray, np.array(dr.grad(pv2)))
 
 
 def test_softplus_sigmoid_exact_and_finite():

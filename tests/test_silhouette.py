@@ -28,6 +28,8 @@ REF_SPACING_S = 0.05
 DENSE_ACCURATE = (2000, 400)
 #: gradient cosine asserted in the slow full accuracy run (see the module docstring of the report)
 GRAD_COSINE_MIN = 0.99
+#: rays of the slow test's central differences of the converged integral
+FD_RAYS = 256
 #: AD vs central differences (float32 labels; see test_gradients_match_finite_differences)
 FD_TOLERANCE = 0.25
 FD_COSINE_MIN = 0.98
@@ -177,13 +179,23 @@ def test_adaptive_matches_reference(n_inst, s):
 def test_adaptive_matches_reference_full(n_inst, s):
     out = accuracy_case(n_inst, s, 1024, seed=100 + n_inst, with_grads=True)
     err = np.abs(out["adaptive"][0] - out["ref"][0]).max(0)
-    assert err.max() <= 0.05 and np.quantile(err, 0.99) <= 0.01
     g_ref, g_ad, g_dense = out["ref"][1], out["adaptive"][1], out["dense"][1]
+    # the derivative of the converged integral on the first FD_RAYS rays (2 renders per parameter)
+    rng = np.random.default_rng(100 + n_inst)
+    scene = random_scene(rng, n_inst, dynamic=True)
+    o, d, t = training_rays(rng, scene, 1024, max_time=2.0)
+    sub = to_mi(o[:FD_RAYS], d[:FD_RAYS], t[:FD_RAYS])
+    weights = [mi.Float(rng.normal(size=1024).astype(np.float32)[:FD_RAYS]) for _ in range(n_inst)]
+    fd = converged_fd_gradient(scene, sub, weights, s)
+    it = make(scene, band_samples=band_samples_for(s), sharpness=s, temperature=1.0 / s)
+    g_ad_sub = labels_and_grads(it, lambda it: it.render_rays(*sub), weights)[1]
     print(f"n={n_inst} s={s} max={err.max():.4f} p99={np.quantile(err, 0.99):.4f} "
           f"cos(ad,ref)={cosine(g_ad, g_ref):.4f} cos(ad,dense)={cosine(g_ad, g_dense):.4f} "
-          f"cos(dense,ref)={cosine(g_dense, g_ref):.4f}")
+          f"cos(dense,ref)={cosine(g_dense, g_ref):.4f} cos(ad,converged FD)={cosine(g_ad_sub, fd):.4f}")
     assert cosine(g_ad, g_ref) >= GRAD_COSINE_MIN
     assert cosine(g_ad, g_dense) >= GRAD_COSINE_MIN
+    assert cosine(g_ad_sub, fd) >= GRAD_COSINE_MIN
+    assert err.max() <= 0.05 and np.quantile(err, 0.99) <= 0.01
 
 
 # ----------------------------------------------------------------------------------------------
@@ -198,6 +210,10 @@ def test_gradients_match_finite_differences(sampling):
     The integral has no differentiable symbolic loop (sample positions are detached, the sums use
     ``dr.block_prefix_sum`` / ``dr.block_sum``); if one were introduced with a wrong
     ``max_iterations`` hint its gradients would silently go wrong, which this check catches.
+    The integrators run with ``ridge_gradients`` off: that option deliberately replaces the
+    discrete integral's one-sided gradient at each ray's deepest sample by the envelope gradient
+    of the continuous one (checked against central differences of the converged integral in the
+    slow accuracy test and ``test_ridge_gradients_follow_the_converged_integral``).
     ``fixed``: the integral on fixed uniform samples; ``dense``: on the dense strategy's own sample
     positions, frozen (they are detached in the integrator, so AD differentiates exactly this; FD
     of the full strategy would also see importance samples jump, which AD by design ignores).
@@ -207,7 +223,7 @@ def test_gradients_match_finite_differences(sampling):
     n_rays, s = 256, 3.0
     rays = to_mi(*training_rays(rng, scene, n_rays, max_time=2.0))
     w = [rng.normal(size=n_rays) for _ in range(3)]
-    kw = {"sharpness": s, "temperature": 1.0 / s}
+    kw = {"sharpness": s, "temperature": 1.0 / s, "ridge_gradients": False}
     grid_m = 400  # few samples: float32 rounding of long prefix sums would swamp small FDs
     grid = mi.Float(np.tile(np.linspace(0.0, 45.0, grid_m).astype(np.float32), n_rays))
 
@@ -250,6 +266,53 @@ def test_gradients_match_finite_differences(sampling):
     # per entry within 25 % of the largest checked gradient, and the vectors aligned
     assert np.all(np.abs(ads - fds) <= FD_TOLERANCE * np.abs(fds).max()), (ads, fds)
     assert cosine(ads, fds) >= FD_COSINE_MIN
+
+
+def converged_fd_gradient(scene: dict, rays, weights, s: float) -> np.ndarray:
+    """Central differences of ``sum weights * labels`` of the converged integral
+    (:func:`reference_labels`) w.r.t. every raw box parameter, steps moving surfaces ~5 mm."""
+    from vsrd_mi.bench.integrator import BenchConfig, fd_steps
+    it = make(scene, sampling="dense", sharpness=s, temperature=1.0 / s)
+    steps = fd_steps(it, BenchConfig())
+    w = np.stack([np.array(x, dtype=np.float64) for x in weights])
+
+    def loss() -> float:
+        with dr.suspend_grad():
+            lab = reference_labels(it, scene, rays, s)[:it.field.n]
+            return float((np.stack([np.array(x, dtype=np.float64) for x in lab]) * w).sum())
+
+    grad = []
+    for key in BOX_KEYS:
+        base = np.array(it.field.params[key], dtype=np.float64)
+        for i, eps in enumerate(steps[key]):
+            vals = []
+            for sign in (1.0, -1.0):
+                x = base.copy()
+                x[i] += sign * eps
+                it.field.params[key] = mi.Float(x.astype(np.float32))
+                vals.append(loss())
+            grad.append((vals[0] - vals[1]) / (2.0 * float(eps)))
+        it.field.params[key] = mi.Float(base.astype(np.float32))
+    return np.array(grad)
+
+
+def test_ridge_gradients_follow_the_converged_integral():
+    """With ``ridge_gradients`` the adaptive AD gradient is that of the converged integral
+    (central differences of the fine reference); AD's one-sided gradient at the rays' deepest
+    samples inside boxes is measurably off on the same rays (so the check can fail)."""
+    rng = np.random.default_rng(24)
+    scene = random_scene(rng, 3, dynamic=True)
+    n_rays, s = 256, 10.0
+    rays = to_mi(*training_rays(rng, scene, n_rays, max_time=2.0))
+    weights = [mi.Float(rng.normal(size=n_rays).astype(np.float32)) for _ in range(3)]
+    fd = converged_fd_gradient(scene, rays, weights, s)
+    cos = {}
+    for ridge in (True, False):
+        it = make(scene, sharpness=s, temperature=1.0 / s, ridge_gradients=ridge)
+        cos[ridge] = cosine(labels_and_grads(it, lambda it: it.render_rays(*rays), weights)[1], fd)
+    print(f"cos vs converged FD: ridge {cos[True]:.4f} one-sided {cos[False]:.4f}")
+    assert cos[True] >= GRAD_COSINE_MIN
+    assert cos[False] < cos[True] - 0.05
 
 
 # ----------------------------------------------------------------------------------------------
