@@ -654,11 +654,14 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
                     rank += dr.select(band == b, 0, cnt)
                 ts = dr.zeros(mi.Float, na * m)
                 dr.scatter(ts, t, r * m + rank)
-                hit = mi.Bool(False)
+                # a hit band's extra sample is its box's deepest point; the band's last sample
+                # can coincide with it (then AD may take either of the two equal SDF values)
+                at_deepest = mi.Bool(False)
                 for b in range(g):
-                    hit = dr.select(band == b, dr.gather(mi.Bool, slot_hit[b], rows), hit)
+                    hb = dr.gather(mi.Bool, slot_hit[b], rows)
+                    at_deepest = dr.select(band == b, hb & (t == sl[b][4]), at_deepest)
                 deepest = dr.zeros(mi.UInt32, na * m)
-                dr.scatter(deepest, dr.select(hit & (j == per - 1), band, g), r * m + rank)
+                dr.scatter(deepest, dr.select(at_deepest, band, g), r * m + rank)
                 rays = dr.gather(mi.UInt32, ray_idx, sub)
                 inst = [dr.gather(mi.UInt32, slot_inst[b], sub) for b in range(g)]
             # yield outside ``suspend_grad``: the consumer differentiates the integral
