@@ -582,7 +582,10 @@ class InstanceField:
         """Instance ``inst[i]`` at lane ``i`` (per-lane gathers) at per-lane ray time ``time``."""
 
         def g(a):
-            return dr.gather(mi.Float, a, inst)
+            # the reverse of this gather is a scatter-add of every lane into an array of
+            # num_instances entries: Expand (per-thread copies, no atomics) instead of atomics
+            # contended by every lane; the target size is fixed per scene, so nothing recompiles
+            return dr.gather(mi.Float, a, inst, mode=dr.ReduceMode.Expand)
 
         m = g(dec.dynamic) * time
         centre = mi.Point3f(*[g(dec.centre[j]) + m * g(dec.velocity[j]) for j in range(3)])
@@ -634,20 +637,56 @@ class InstanceField:
 
     def lane_sdfs(self, dec: DecodedBoxes, p: mi.Point3f, time: mi.Float, inst: mi.UInt32,
                   weights: mi.TensorXf | None = None, reach: float | mi.Float = 0.0,
-                  ridge: tuple[mi.UInt32, mi.Vector3f, float | mi.Float] | None = None) -> mi.Float:
+                  ridge: tuple[mi.UInt32, mi.Vector3f, float | mi.Float] | None = None,
+                  grad_reach: float | mi.Float | None = None) -> mi.Float:
         """SDF of instance ``inst[i]`` at point ``p[i]`` (one instance per lane).
 
         The per-lane counterpart of :meth:`instance_sdfs` for samplers that evaluate only the
         instances a ray can meet; the residual is added under the same ``reach`` rule. With
         ``ridge = (lanes, ray directions, tolerance)`` the box part at those lanes, each the
         deepest point of its ray in its lane's box, carries the envelope gradient
-        (:func:`box_sdf_ray_local`; same values).
+        (:func:`box_sdf_ray_local`; same values). With ``grad_reach``, lanes outside the box
+        enlarged by ``grad_reach`` (and by ``reach`` with a residual) get the detached box SDF:
+        the same values, but only the lanes near their box enter the AD graph (the backward pass
+        runs over those alone). A sampler may pass the distance beyond which an SDF value can no
+        longer move its integral.
         """
+        if grad_reach is None:
+            f = self._lane_sdfs_ad(dec, p, time, inst, weights, reach)
+        else:
+            bv = self.view_lanes(dec, inst, time)
+            with dr.suspend_grad():
+                pl = bv.to_local(p)
+                f = box_sdf_local(pl, bv.half)
+                live_reach = grad_reach if weights is None else dr.maximum(grad_reach, reach)
+                near = _near_box(pl, bv.half, live_reach)
+                dr.eval(f, near)  # one kernel for both (compress would evaluate the mask alone)
+                live = dr.compress(near)
+            if dr.width(live):
+                with dr.suspend_grad():
+                    p_s, t_s, i_s = (dr.gather(type(p), p, live), dr.gather(mi.Float, time, live),
+                                     dr.gather(mi.UInt32, inst, live))
+                f_s = self._lane_sdfs_ad(dec, p_s, t_s, i_s, weights, reach)
+                delta = dr.zeros(mi.Float, dr.width(f))
+                # f_s - detach(box part) is the residual's value plus zero: values stay exact
+                dr.scatter_add(delta, f_s - dr.detach(box_sdf_local(*self._local(dec, p_s, t_s, i_s))), live)
+                f = f + delta
+        if ridge is not None:
+            f = f + self.ridge_correction(dec, p, time, inst, ridge)
+        return f
+
+    def _local(self, dec: DecodedBoxes, p: mi.Point3f, time: mi.Float, inst: mi.UInt32):
+        """Detached box-local points and half extents of lanes ``inst`` (for value bookkeeping)."""
+        with dr.suspend_grad():
+            bv = self.view_lanes(dec, inst, time)
+            return bv.to_local(p), bv.half
+
+    def _lane_sdfs_ad(self, dec: DecodedBoxes, p: mi.Point3f, time: mi.Float, inst: mi.UInt32,
+                      weights: mi.TensorXf | None, reach: float | mi.Float) -> mi.Float:
+        """Differentiable box SDF (+ residual under the ``reach`` rule) of one instance per lane."""
         bv = self.view_lanes(dec, inst, time)
         pl = bv.to_local(p)
         f = box_sdf_local(pl, bv.half)
-        if ridge is not None:
-            f = f + self.ridge_correction(dec, p, time, inst, ridge)
         if weights is None:
             return f
         near = _near_box(pl, bv.half, reach)

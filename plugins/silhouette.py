@@ -287,8 +287,11 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
             ridge = None
             if self.cfg.ridge_gradients and dr.width(deep):
                 ridge = (deep, dr.gather(mi.Vector3f, d_all, deep), RIDGE_TOLERANCE)
+        # beyond the culling margin of its box a lane's SDF cannot move the integral by more
+        # than exp(-reach) (see _cull_margin): its value is kept, its gradient dropped
         f_all = self.field.lane_sdfs(dec, p_all, t_all, i_all, self.field.residual_weights(),
-                                     reach=self._residual_reach(), ridge=ridge)
+                                     reach=self._residual_reach(), ridge=ridge,
+                                     grad_reach=dr.detach(self._cull_margin()))
         flat = dr.zeros(mi.Float, n_rays * n_inst)
         start = 0
         for rays, t, m, active, slot_inst, _ in groups:
