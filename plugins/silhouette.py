@@ -296,10 +296,17 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         start = 0
         for rays, t, m, active, slot_inst, _ in groups:
             w = dr.width(t)
-            sdfs = [dr.gather(mi.Float, f_all, dr.arange(mi.UInt32, w) + dr.opaque(mi.UInt32, start + b * w))
+            with dr.suspend_grad():
+                lane = dr.arange(mi.UInt32, w)
+                nxt = dr.select((lane % m) == (m - 1), lane, lane + 1)
+            # each sample's and its successor's SDFs straight from f_all: the integral's
+            # kernels need not wait for a gather from an evaluated scene SDF
+            sdfs = [dr.gather(mi.Float, f_all, lane + dr.opaque(mi.UInt32, start + b * w))
                     for b in range(len(slot_inst))]
+            nexts = [dr.gather(mi.Float, f_all, nxt + dr.opaque(mi.UInt32, start + b * w))
+                     for b in range(len(slot_inst))]
             start += w * len(slot_inst)
-            for lab, ib in zip(self._integrate(sdfs, m), slot_inst):
+            for lab, ib in zip(self._integrate(sdfs, m, nexts), slot_inst):
                 dr.scatter_add(flat, lab, rays * n_inst + ib, active)
             self._count(dr.width(rays), m, len(slot_inst))
         idx = dr.arange(mi.UInt32, n_rays) * n_inst
@@ -364,8 +371,9 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
             out.append(f + self.field.ridge_correction(dec, p, time, mi.UInt32(k), ridge))
         return out
 
-    def _integrate(self, sdfs: list[mi.Float], m: int) -> list[mi.Float]:
-        """Differentiable NeuS integral of instance SDFs at ``m`` sorted samples per ray."""
+    def _integrate(self, sdfs: list[mi.Float], m: int, nexts: list[mi.Float] | None = None) -> list[mi.Float]:
+        """Differentiable NeuS integral of instance SDFs at ``m`` sorted samples per ray
+        (``nexts``: the same SDFs at each lane's next sample, if the caller has them)."""
         n = dr.width(sdfs[0]) // m
         with dr.suspend_grad():
             lane = dr.arange(mi.UInt32, n * m)
@@ -374,15 +382,20 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         f = scene_sdf(sdfs)
         labels = softmin_labels(sdfs, self.temperature)
         s = self.sharpness
-        f_next = dr.gather(mi.Float, f, nxt)
+        if nexts is None:
+            f_next = dr.gather(mi.Float, f, nxt)
+            labels_next = [dr.gather(mi.Float, lab, nxt) for lab in labels]
+        else:
+            f_next = scene_sdf(nexts)
+            labels_next = softmin_labels(nexts, self.temperature)
         log1ma = dr.minimum(softplus(-s * f) - softplus(-s * f_next), 0.0)
         log1ma = dr.select(last, 0.0, log1ma)
         log_t = dr.block_prefix_sum(log1ma, m, exclusive=True)
         w = dr.exp(log_t) - dr.exp(log_t + log1ma)
         theta = self._accrual_position(s, f, f_next, log1ma)
         out = []
-        for lab in labels:
-            lab_at = lab + (dr.gather(mi.Float, lab, nxt) - lab) * theta
+        for lab, lab_next in zip(labels, labels_next):
+            lab_at = lab + (lab_next - lab) * theta
             out.append(dr.block_sum(w * lab_at, m))
         return out
 
