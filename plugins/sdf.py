@@ -654,8 +654,8 @@ class InstanceField:
         if grad_reach is None:
             f = self._lane_sdfs_ad(dec, p, time, inst, weights, reach)
         else:
-            bv = self.view_lanes(dec, inst, time)
             with dr.suspend_grad():
+                bv = self.view_lanes(dec, inst, time)
                 pl = bv.to_local(p)
                 f = box_sdf_local(pl, bv.half)
                 live_reach = grad_reach if weights is None else dr.maximum(grad_reach, reach)
@@ -666,20 +666,15 @@ class InstanceField:
                 with dr.suspend_grad():
                     p_s, t_s, i_s = (dr.gather(type(p), p, live), dr.gather(mi.Float, time, live),
                                      dr.gather(mi.UInt32, inst, live))
+                    f_box = dr.gather(mi.Float, f, live)
                 f_s = self._lane_sdfs_ad(dec, p_s, t_s, i_s, weights, reach)
+                # f_s - (detached box value) is the residual's value plus ~0: values stay exact
                 delta = dr.zeros(mi.Float, dr.width(f))
-                # f_s - detach(box part) is the residual's value plus zero: values stay exact
-                dr.scatter_add(delta, f_s - dr.detach(box_sdf_local(*self._local(dec, p_s, t_s, i_s))), live)
+                dr.scatter_add(delta, f_s - f_box, live)
                 f = f + delta
         if ridge is not None:
             f = f + self.ridge_correction(dec, p, time, inst, ridge)
         return f
-
-    def _local(self, dec: DecodedBoxes, p: mi.Point3f, time: mi.Float, inst: mi.UInt32):
-        """Detached box-local points and half extents of lanes ``inst`` (for value bookkeeping)."""
-        with dr.suspend_grad():
-            bv = self.view_lanes(dec, inst, time)
-            return bv.to_local(p), bv.half
 
     def _lane_sdfs_ad(self, dec: DecodedBoxes, p: mi.Point3f, time: mi.Float, inst: mi.UInt32,
                       weights: mi.TensorXf | None, reach: float | mi.Float) -> mi.Float:
