@@ -687,7 +687,7 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
     @staticmethod
     def _sub_sample(a, b, i, k: int):
         """``i``-th (1..k) sample of the sub-band ``(a, b]``; the one formula for values and ranks."""
-        return a + (b - a) * (mi.Float(i) * (1.0 / k))
+        return dr.fma(b - a, mi.Float(i) * (1.0 / k), a)  # one rounding wherever it is evaluated
 
     def _count_before(self, a, b, k: int, before):
         """Number of samples ``i = 1..k`` of sub-band ``(a, b]`` for which ``before`` holds (it
