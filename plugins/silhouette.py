@@ -136,6 +136,36 @@ ACCRUAL_MIN_SLOPE = 1e-4
 ACCRUAL_MAX_DEPTH = 30.0
 
 
+def golden_section(fs, brackets, iterations: int, label: str) -> list[mi.Float]:
+    """Per lane, ``argmin`` of each unimodal ``fs[i]`` on ``brackets[i] = (a, b)`` by
+    ``iterations`` golden-section steps, all functions in one symbolic loop (detached use)."""
+    state = [mi.UInt32(0)]
+    for f, (a, b) in zip(fs, brackets):
+        a, b = mi.Float(a), mi.Float(b)
+        x1, x2 = b - GOLDEN * (b - a), a + GOLDEN * (b - a)
+        state += [a, b, x1, x2, f(x1), f(x2)]
+
+    def cond(i, *s):
+        return i < iterations
+
+    def body(i, *s):
+        s = list(s)
+        for k, f in enumerate(fs):
+            a, b, x1, x2, f1, f2 = s[6 * k:6 * k + 6]
+            left = f1 < f2
+            a2 = dr.select(left, a, x1)
+            b2 = dr.select(left, x2, b)
+            xn = dr.select(left, b2 - GOLDEN * (b2 - a2), a2 + GOLDEN * (b2 - a2))
+            fn = f(xn)
+            s[6 * k:6 * k + 6] = [a2, b2, dr.select(left, xn, x2), dr.select(left, x1, xn),
+                                  dr.select(left, fn, f2), dr.select(left, f1, fn)]
+        return (i + 1, *s)
+
+    state = dr.while_loop(tuple(state), cond, body, label=label)
+    return [dr.select(state[5 + 6 * k] < state[6 + 6 * k], state[3 + 6 * k], state[4 + 6 * k])
+            for k in range(len(fs))]
+
+
 @dataclass(frozen=True)
 class SamplingConfig:
     """Ray sampling settings of :class:`VSRDSilhouetteIntegrator` (see the plugin table)."""
@@ -544,38 +574,12 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
             tin = [sel(x) for x in tin]
 
             # golden-section search for argmin_t B_k(o + t d) on [entry, exit] (B_k is convex)
-            def fk(k, t):
+            def fk(k):
                 ol, dl, half = views[k]
-                return box_sdf_local(ol + t * dl, half)
+                return lambda t: box_sdf_local(ol + t * dl, half)
 
-            state = [mi.UInt32(0)]
-            for k in range(n_inst):
-                a, b = mi.Float(entry[k]), mi.Float(exit_[k])
-                x1, x2 = b - GOLDEN * (b - a), a + GOLDEN * (b - a)
-                state += [a, b, x1, x2, fk(k, x1), fk(k, x2)]
-
-            def cond(i, *s):
-                return i < cfg.golden_iterations
-
-            def body(i, *s):
-                s = list(s)
-                for k in range(n_inst):
-                    a, b, x1, x2, f1, f2 = s[6 * k:6 * k + 6]
-                    left = f1 < f2
-                    a2 = dr.select(left, a, x1)
-                    b2 = dr.select(left, x2, b)
-                    xn = dr.select(left, b2 - GOLDEN * (b2 - a2), a2 + GOLDEN * (b2 - a2))
-                    fn = fk(k, xn)
-                    s[6 * k:6 * k + 6] = [a2, b2,
-                                          dr.select(left, xn, x2), dr.select(left, x1, xn),
-                                          dr.select(left, fn, f2), dr.select(left, f1, fn)]
-                return (i + 1, *s)
-
-            state = dr.while_loop(tuple(state), cond, body, label="vsrd_golden_section")
-            tstar = []
-            for k in range(n_inst):
-                a, b, x1, x2, f1, f2 = state[1 + 6 * k:7 + 6 * k]
-                tstar.append(dr.select(f1 < f2, x1, x2))
+            tstar = golden_section([fk(k) for k in range(n_inst)], list(zip(entry, exit_)),
+                                   cfg.golden_iterations, "vsrd_golden_section")
 
             # per instance band: hits centre on the entry, misses end at the closest approach
             centre = [dr.select(hit[k], tin[k], tstar[k]) for k in range(n_inst)]
@@ -638,35 +642,13 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
                 out = [dr.select(kb == k, v, o) for v, o in zip(views[k], out)]
             return out
 
-        pairs, state = [], [mi.UInt32(0)]
-        for b in range(n_slots - 1):
-            va, vb = view_of(slot_inst[b]), view_of(slot_inst[b + 1])
-            pairs.append((va, vb))
-            a, c = mi.Float(slot_ts[b]), dr.maximum(slot_ts[b + 1], slot_ts[b])
-            x1, x2 = c - GOLDEN * (c - a), a + GOLDEN * (c - a)
-            state += [a, c, x1, x2, self._pair_sdf(va, vb, x1), self._pair_sdf(va, vb, x2)]
-
-        def cond(i, *st):
-            return i < self.cfg.golden_iterations
-
-        def body(i, *st):
-            st = list(st)
-            for b, (va, vb) in enumerate(pairs):
-                a, c, x1, x2, f1, f2 = st[6 * b:6 * b + 6]
-                left = f1 > f2  # maximum to the left of x2
-                a2, c2 = dr.select(left, a, x1), dr.select(left, x2, c)
-                xn = dr.select(left, c2 - GOLDEN * (c2 - a2), a2 + GOLDEN * (c2 - a2))
-                fn = self._pair_sdf(va, vb, xn)
-                st[6 * b:6 * b + 6] = [a2, c2, dr.select(left, xn, x2), dr.select(left, x1, xn),
-                                       dr.select(left, fn, f2), dr.select(left, f1, fn)]
-            return (i + 1, *st)
-
-        state = dr.while_loop(tuple(state), cond, body, label="vsrd_gap_peaks")
+        pairs = [(view_of(slot_inst[b]), view_of(slot_inst[b + 1])) for b in range(n_slots - 1)]
+        brackets = [(slot_ts[b], dr.maximum(slot_ts[b + 1], slot_ts[b])) for b in range(n_slots - 1)]
+        tps = golden_section([lambda t, va=va, vb=vb: -self._pair_sdf(va, vb, t) for va, vb in pairs],
+                             brackets, self.cfg.golden_iterations, "vsrd_gap_peaks")
         out = []
-        for b, (va, vb) in enumerate(pairs):
-            a, c, x1, x2, f1, f2 = state[1 + 6 * b:7 + 6 * b]
+        for b, ((va, vb), tp) in enumerate(zip(pairs, tps)):
             ok = (count > b + 1) & (slot_ts[b] < slot_ts[b + 1])
-            tp = dr.select(f1 > f2, x1, x2)
             pa, pb = va[0] + tp * va[1], vb[0] + tp * vb[1]
             ga = dr.dot(box_normal_local(pa, va[2]), va[1])
             gb = dr.dot(box_normal_local(pb, vb[2]), vb[1])
