@@ -683,10 +683,11 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
     def _adaptive_groups(self, dec, o, d, time):
         """Sample positions for the adaptive strategy, one group per band count.
 
-        Yields ``(ray_idx, t, m, active, inst, deepest, peak)``: rays with exactly ``g`` bands get ``m = g (K + 3)`` samples
-        (entry, ``K`` band samples, closest approach / exit, and the scene SDF's peak before the
-        next band, per band), merged in order by a
-        closed-form rank (bands are internally sorted), so no per-ray sort is needed. ``active``
+        Yields ``(ray_idx, t, m, active, inst, deepest, peak)``: rays with exactly ``g`` bands get
+        ``m = g (K + 3)`` samples (entry, ``K`` band samples, closest approach / exit, and the scene
+        SDF's peak before the next band, per band), merged in order by rank: a sample's index in
+        its band plus, per other band, how many of that band's samples come before it (a binary
+        search: bands are internally sorted), so no per-ray sort is needed. ``active``
         masks the padding copy of a single-ray group; ``inst`` holds the ``g`` band instances of
         each ray (the only instances evaluated at its samples); ``deepest`` is, per sample, the band
         whose box's deepest point along the ray this sample is (``g`` for none); ``peak`` per sample
