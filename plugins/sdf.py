@@ -224,6 +224,20 @@ def box_sdf_local(p: mi.Vector3f, half: mi.Vector3f) -> mi.Float:
 RIDGE_TOLERANCE = 1e-3
 
 
+def envelope_weight(ga: mi.Float, gb: mi.Float) -> mi.Float:
+    """Danskin weight ``lambda_a = g_b / (g_b - g_a)`` of function ``a`` where two functions of
+    opposite slopes ``g_a``, ``g_b`` along a ray cross at the ray's extremum of their max (or
+    min): the blend ``lambda_a a + (1 - lambda_a) b`` has slope zero there. Needs
+    ``g_a != g_b``."""
+    return gb / (gb - ga)
+
+
+def envelope_blend(value: mi.Float, fa: mi.Float, fb: mi.Float, lam: mi.Float) -> mi.Float:
+    """``value`` with the gradient ``lam dfa + (1 - lam) dfb`` (the envelope gradient of the
+    extremum where ``fa`` and ``fb`` cross; see :func:`envelope_weight`)."""
+    return dr.detach(value) + lam * (fa - dr.detach(fa)) + (1.0 - lam) * (fb - dr.detach(fb))
+
+
 def box_sdf_ray_local(p: mi.Vector3f, d: mi.Vector3f, half: mi.Vector3f,
                       tol: float | mi.Float = RIDGE_TOLERANCE) -> mi.Float:
     r""":func:`box_sdf_local` at a point of a ray with direction ``d``, with the envelope gradient
@@ -260,7 +274,7 @@ def box_sdf_ray_local(p: mi.Vector3f, d: mi.Vector3f, half: mi.Vector3f,
             ia, ga = dr.select(dec_j, j, ia), dr.select(dec_j, slopes[j], ga)
             ib, gb = dr.select(inc_j, j, ib), dr.select(inc_j, slopes[j], gb)
         ridge = (m < 0.0) & (ia < 6) & (ib < 6)
-        lam = dr.select(ridge, gb / dr.select(ridge, gb - ga, 1.0), 0.0)
+        lam = envelope_weight(dr.select(ridge, ga, -1.0), dr.select(ridge, gb, 1.0))
 
     def face(idx):
         out = faces[5]
@@ -268,9 +282,7 @@ def box_sdf_ray_local(p: mi.Vector3f, d: mi.Vector3f, half: mi.Vector3f,
             out = dr.select(idx == j, faces[j], out)
         return out
 
-    qa, qb = face(ia), face(ib)
-    blended = dr.detach(f) + lam * (qa - dr.detach(qa)) + (1.0 - lam) * (qb - dr.detach(qb))
-    return dr.select(ridge, blended, f)
+    return dr.select(ridge, envelope_blend(f, face(ia), face(ib), lam), f)
 
 
 def box_normal_local(p: mi.Vector3f, half: mi.Vector3f) -> mi.Vector3f:

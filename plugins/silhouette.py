@@ -123,8 +123,8 @@ from dataclasses import dataclass
 import drjit as dr
 import mitsuba as mi
 
-from .sdf import (RIDGE_TOLERANCE, InstanceField, box_normal_local, box_sdf_local, concat, ray_box_interval, scene_sdf,
-                  softmin_labels, softplus)
+from .sdf import (RIDGE_TOLERANCE, InstanceField, box_normal_local, box_sdf_local, concat, envelope_blend,
+                  envelope_weight, ray_box_interval, scene_sdf, softmin_labels, softplus)
 
 GOLDEN = 0.6180339887498949
 #: Below this interval opacity the label is taken at the interval midpoint (see _accrual_position).
@@ -450,8 +450,7 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         with dr.suspend_grad():
             da, db, df = dr.detach(fa), dr.detach(fb), dr.detach(f)
             ok = ((lam >= 0.0) & (dr.abs(da - db) <= RIDGE_TOLERANCE) & (dr.minimum(da, db) <= df))
-        blended = df + lam * (fa - da) + (1.0 - lam) * (fb - db)
-        return dr.select(ok, blended, f)
+        return dr.select(ok, envelope_blend(f, fa, fb, lam), f)
 
     @staticmethod
     def _accrual_position(s, fa, fb, log1ma) -> mi.Float:
@@ -642,7 +641,8 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
                 out = [dr.select(kb == k, v, o) for v, o in zip(views[k], out)]
             return out
 
-        pairs = [(view_of(slot_inst[b]), view_of(slot_inst[b + 1])) for b in range(n_slots - 1)]
+        slot_views = [view_of(kb) for kb in slot_inst]
+        pairs = list(zip(slot_views[:-1], slot_views[1:]))
         brackets = [(slot_ts[b], dr.maximum(slot_ts[b + 1], slot_ts[b])) for b in range(n_slots - 1)]
         tps = golden_section([lambda t, va=va, vb=vb: -self._pair_sdf(va, vb, t) for va, vb in pairs],
                              brackets, self.cfg.golden_iterations, "vsrd_gap_peaks")
@@ -653,7 +653,7 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
             ga = dr.dot(box_normal_local(pa, va[2]), va[1])
             gb = dr.dot(box_normal_local(pb, vb[2]), vb[1])
             crossing = (ga > 0.0) & (gb < 0.0)
-            lam = dr.select(crossing, -gb / dr.select(crossing, ga - gb, 1.0), -1.0)
+            lam = dr.select(crossing, envelope_weight(dr.select(crossing, ga, 1.0), dr.select(crossing, gb, -1.0)), -1.0)
             out.append((tp, ok, lam))
         return out + [none]
 

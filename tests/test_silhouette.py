@@ -18,7 +18,7 @@ import mitsuba as mi
 
 from vsrd_plugins.sdf import instance_properties
 from vsrd_plugins.silhouette import VSRDSilhouetteIntegrator
-from vsrd_mi.bench.integrator import reference_grid
+from vsrd_mi.bench.integrator import BenchConfig, central_differences, fd_steps, reference_grid
 from vsrd_mi.geometry.boxes import Box3D
 from vsrd_mi.geometry.iou3d import iou3d
 
@@ -305,9 +305,7 @@ def test_gradients_match_finite_differences(sampling):
 def converged_fd_gradient(scene: dict, rays, weights, s: float) -> np.ndarray:
     """Central differences of ``sum weights * labels`` of the converged integral
     (:func:`reference_labels`) w.r.t. every raw box parameter, steps moving surfaces ~5 mm."""
-    from vsrd_mi.bench.integrator import BenchConfig, fd_steps
     it = make(scene, sampling="dense", sharpness=s, temperature=1.0 / s)
-    steps = fd_steps(it, BenchConfig())
     w = np.stack([np.array(x, dtype=np.float64) for x in weights])
 
     def loss() -> float:
@@ -315,19 +313,7 @@ def converged_fd_gradient(scene: dict, rays, weights, s: float) -> np.ndarray:
             lab = reference_labels(it, scene, rays, s)[:it.field.n]
             return float((np.stack([np.array(x, dtype=np.float64) for x in lab]) * w).sum())
 
-    grad = []
-    for key in BOX_KEYS:
-        base = np.array(it.field.params[key], dtype=np.float64)
-        for i, eps in enumerate(steps[key]):
-            vals = []
-            for sign in (1.0, -1.0):
-                x = base.copy()
-                x[i] += sign * eps
-                it.field.params[key] = mi.Float(x.astype(np.float32))
-                vals.append(loss())
-            grad.append((vals[0] - vals[1]) / (2.0 * float(eps)))
-        it.field.params[key] = mi.Float(base.astype(np.float32))
-    return np.array(grad)
+    return central_differences(it, loss, fd_steps(it, BenchConfig()))
 
 
 def test_ridge_gradients_follow_the_converged_integral():

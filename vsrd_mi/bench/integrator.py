@@ -481,8 +481,14 @@ def reference_fd_gradient(data: CaseData, residual: bool, n: int, cfg: BenchConf
                 total += float((np.stack([np.array(x, dtype=np.float64) for x in labels]) * w).sum())
             return total
 
+    return central_differences(it, loss, fd_steps(it, cfg))
+
+
+def central_differences(it: VSRDSilhouetteIntegrator, loss: Callable[[], float],
+                        steps: dict[str, np.ndarray]) -> np.ndarray:
+    """Central differences of ``loss()`` w.r.t. every raw box parameter of ``it`` (in the order
+    of :data:`BOX_KEYS`), each stepped by ``steps[key][i]``; the parameters are restored."""
     grad = []
-    steps = fd_steps(it, cfg)
     for key in BOX_KEYS:
         base = np.array(it.field.params[key], dtype=np.float64)
         for i, eps in enumerate(steps[key]):
