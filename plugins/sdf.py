@@ -670,8 +670,10 @@ class InstanceField:
                 bv = self.view_lanes(dec, inst, time)
                 pl = bv.to_local(p)
                 f = box_sdf_local(pl, bv.half)
+                # the residual only raises the box SDF: lanes whose box SDF exceeds the reach
+                # stay beyond it
                 live_reach = grad_reach if weights is None else dr.maximum(grad_reach, reach)
-                near = _near_box(pl, bv.half, live_reach)
+                near = f <= live_reach
                 dr.eval(f, near)  # one kernel for both (compress would evaluate the mask alone)
                 live = dr.compress(near)
             if dr.width(live):

@@ -434,11 +434,11 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         log_t = dr.block_prefix_sum(log1ma, m, exclusive=True)
         w = dr.exp(log_t) - dr.exp(log_t + log1ma)
         theta = self._accrual_position(s, f, f_next, log1ma)
-        out = []
-        for lab, lab_next in zip(labels, labels_next):
-            lab_at = lab + (lab_next - lab) * theta
-            out.append(dr.block_sum(w * lab_at, m))
-        return out
+        terms = [w * (lab + (lab_next - lab) * theta) for lab, lab_next in zip(labels, labels_next)]
+        # one kernel for every instance's terms: block_sum of an unevaluated array evaluates it
+        # alone, recomputing the shared weights once per instance
+        dr.eval(terms)
+        return [dr.block_sum(x, m) for x in terms]
 
     @staticmethod
     def _crossing_gradient(f: mi.Float, sdfs: list[mi.Float], band: mi.UInt32, lam: mi.Float) -> mi.Float:
@@ -558,6 +558,9 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
             any_act = act[0]
             for a in act[1:]:
                 any_act |= a
+            # one kernel for every per-instance ray quantity (a gather from an unevaluated
+            # array evaluates it alone: 10 small kernels per instance)
+            dr.eval(any_act, views, entry, exit_, act, hit, tin)
             ray_idx = dr.compress(any_act)
             if dr.width(ray_idx) == 0:
                 return ray_idx, None, [], [], []
