@@ -57,12 +57,14 @@ label of instance ``k`` is
 
 .. math::
 
-   \hat S_k = \sum_i w_i \, \mathrm{softmin}_k\big(F(x_i^*) / \tau\big),
+   \hat S_k = \sum_i w_i \, \mathrm{softmin}_k\big(F_i^* / \tau\big),
+   \qquad F_{k,i}^* = F_k(x_i) + \theta_i \big(F_k(x_{i+1}) - F_k(x_i)\big),
 
-where ``x_i^*`` is the endpoint of interval ``i`` with the smaller scene SDF (where a monotone
-interval's opacity accrues). The background label is ``1 - sum_k S_k``. Because the endpoint
-formula telescopes over monotone stretches of ``f``, the result depends on where the samples
-resolve the minima and descents of ``f``, which is what the two sampling strategies target:
+where ``theta_i`` is the opacity-weighted mean position of the interval's weight with ``f``
+linear over it (:meth:`~VSRDSilhouetteIntegrator._accrual_position`; the surface crossing in
+the sharp limit). The background label is ``1 - sum_k S_k``. Because the opacities telescope
+over monotone stretches of ``f``, the result depends on where the samples resolve the minima,
+maxima and descents of ``f``, which is what the two sampling strategies target:
 
 * ``dense``: ``coarse_samples`` stratified samples over ``[near, far]`` (no gradients), then
   ``fine_samples`` importance samples from the coarse weights (guarded against rays whose coarse
@@ -76,11 +78,12 @@ resolve the minima and descents of ``f``, which is what the two sampling strateg
   the slab test the surface entry. Each such instance gets a band of ``K`` samples of half-width
   ``reach / s`` at its entry (hit) or ending at ``t*`` (miss), plus its enlarged-box entry and
   the closest approach, so the minimum of ``f`` is sampled exactly (for a miss the gradient is
-  then the exact envelope gradient). Between consecutive bands a second detached golden-section
-  search finds where the scene SDF stops rising from one box and starts falling into the next
-  (the maximum of the two boxes' ``min``), one more sample per band: the next descent's opacity
-  telescopes from there, and without it a ray grazing two neighbours lost part of it (labels off
-  by up to 0.03 at s = 10). At most ``B`` bands (nearest first) per ray, and only those
+  then the exact envelope gradient). Between consecutive deepest points a second detached
+  golden-section search finds where the scene SDF stops rising and starts falling into the next
+  box (its maximum there: it is unimodal between two consecutive minima of convex functions), one
+  more sample per band: the next descent's opacity telescopes from there, and without it a ray
+  grazing two neighbours lost part of it (labels off by up to 0.03 at s = 10). At most ``B``
+  bands (nearest deepest point first) per ray, and only those
   ``B`` instances are evaluated on it; rays that meet
   no enlarged box return background at zero cost (they are compacted away). Only sample
   positions are detached; SDF values at samples carry gradients.
@@ -98,8 +101,8 @@ integral. With ``ridge_gradients`` (default) the deepest sample of each ray in e
 adaptive sampler's exact closest approach of an entered box; for ``dense`` and
 :meth:`integrate_at` the sample of least SDF, within a face tolerance of twice the local
 spacing) carries the envelope gradient; only those samples pay for it. The same holds at the
-adaptive sampler's gap peaks, where two boxes' distances cross at a maximum of their ``min``:
-there the scene SDF's gradient is the blend of the two that keeps its slope along the ray zero.
+adaptive sampler's gap peaks, where two boxes' distances cross at a maximum of the scene SDF:
+there its gradient is the blend of the two that keeps its slope along the ray zero.
 
 Usage
 -----
@@ -432,11 +435,11 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         return out
 
     def _integrate(self, sdfs: list[mi.Float], m: int, nexts: list[mi.Float] | None = None,
-                   peak: tuple[mi.UInt32, mi.Float] | None = None) -> list[mi.Float]:
+                   peak: tuple[mi.UInt32, mi.UInt32, mi.Float] | None = None) -> list[mi.Float]:
         """Differentiable NeuS integral of instance SDFs at ``m`` sorted samples per ray
         (``nexts``: the same SDFs at each lane's next sample, if the caller has them; ``peak``:
-        per lane the index ``b`` of a crossing of instances ``b`` and ``b + 1`` and its envelope
-        weight, ``-1`` for none, see :meth:`_gap_peaks`)."""
+        per lane the indices ``a, b`` of two instances crossing at a gap peak and the envelope
+        weight of ``a``, ``-1`` for none, see :meth:`_gap_peaks`)."""
         n = dr.width(sdfs[0]) // m
         with dr.suspend_grad():
             lane = dr.arange(mi.UInt32, n * m)
@@ -485,10 +488,13 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         With ``f`` linear over the interval, the opacity accrued up to ``theta`` is
         ``A(theta) = 1 - Phi(f(theta)) / Phi(fa)`` and ``int_0^1 Phi(f) = (sp(s fb) - sp(s fa)) /
         (s (fb - fa))`` (``sp`` = softplus), so ``E[theta] = 1 - (1 - I / Phi(fa)) / alpha``.
-        The label is interpolated there between the endpoint labels: second-order accurate in
-        the sample spacing where labels vary smoothly (the endpoint rule is first-order), and the
-        surface crossing in the sharp limit. Intervals with negligible opacity or a flat ``f``
-        use the midpoint (their weight is ~0 or uniform).
+        The labels are the softmin of the instance SDFs interpolated there: second-order
+        accurate in the sample spacing (the endpoint rule is first-order), and the surface
+        crossing in the sharp limit. Interpolating the SDFs rather than the endpoint labels
+        keeps a label switch between two boxes inside a long interval where the SDFs cross
+        (s = 10, K = 16, max error vs the reference: 3 boxes side by side 0.022 -> 0.014,
+        12 boxes 0.014 -> 0.007). Intervals with negligible opacity or a flat ``f`` use the
+        midpoint (their weight is ~0 or uniform).
         """
         alpha = 1.0 - dr.exp(log1ma)
         df = fb - fa
@@ -557,7 +563,8 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
 
         Returns ``(ray_idx, count, slots, slot_inst, slot_hit)``: indices of rays meeting at least
         one enlarged box, their number of bands, per slot ``(entry, lo, mid, hi, extra)`` arrays
-        (slots sorted by band centre; a ray's valid slots come first), per slot the band's instance
+        (slots sorted by the box's deepest point / closest approach along the ray, which
+        :meth:`_gap_peaks` needs; a ray's valid slots come first), per slot the band's instance
         (``num_instances`` for an empty slot) and whether the ray enters that box (then ``extra``
         is the deepest point of the box along the ray).
         """
@@ -739,7 +746,8 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         masks the padding copy of a single-ray group; ``inst`` holds the ``g`` band instances of
         each ray (the only instances evaluated at its samples); ``deepest`` is, per sample, the band
         whose box's deepest point along the ray this sample is (``g`` for none); ``peak`` per sample
-        the band of the sample and the envelope weight if it is a gap peak (else ``-1``).
+        the two bands whose boxes cross there and the envelope weight of the first if it is a gap
+        peak (else ``-1``).
         """
         kk = self.cfg.band_samples
         per = kk + 3
