@@ -145,6 +145,8 @@ ACCRUAL_MIN_SLOPE = 1e-4
 #: Intervals starting deeper than ``-s * f_a`` > this use the midpoint (exp overflow guard; only
 #: rays starting inside a box reach such depths with non-zero transmittance).
 ACCRUAL_MAX_DEPTH = 30.0
+#: Gap peaks: boxes on each side of a gap (by deepest point) whose least SDF is searched.
+GAP_WINDOW = 2
 
 
 def golden_section(fs, brackets, iterations: int, label: str) -> list[mi.Float]:
@@ -700,7 +702,10 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         Between consecutive deepest points every box of an earlier slot rises and every box of a
         later one falls (each is convex along the ray), so the scene SDF is unimodal there, and
         its maximum is where the least rising box meets the least falling one (with boxes side
-        by side, not necessarily the two slots' own boxes). At that crossing ``B_a = B_a'``
+        by side, not necessarily the two slots' own boxes). The search takes those least boxes
+        over the ``GAP_WINDOW`` slots on each side of the gap, so its cost does not grow with
+        the square of the boxes a ray meets (12 boxes, s = 3 and 10: labels within 0.0004 of
+        the search over all of them). At that crossing ``B_a = B_a'``
         (``a`` rising with slope ``g_a > 0`` along the ray, ``a'`` falling, ``g_a' < 0``) the
         maximum's derivative is ``lambda_a dB_a + (1 - lambda_a) dB_a'`` with
         ``lambda_a = -g_a' / (g_a - g_a')`` (Danskin, as at a box's ridge); ``-1`` where the
@@ -721,8 +726,14 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
                 f = dr.minimum(f, fj)
             return f, arg
 
+        def rising(b):
+            return range(max(b + 1 - GAP_WINDOW, 0), b + 1)
+
+        def falling(b):
+            return range(b + 1, min(b + 1 + GAP_WINDOW, n_slots))
+
         def neg_scene(b):
-            return lambda t: -dr.minimum(least(t, range(b + 1))[0], least(t, range(b + 1, n_slots))[0])
+            return lambda t: -dr.minimum(least(t, rising(b))[0], least(t, falling(b))[0])
 
         brackets = [(slot_ts[b], dr.maximum(slot_ts[b + 1], slot_ts[b])) for b in range(n_slots - 1)]
         tps = golden_section([neg_scene(b) for b in range(n_slots - 1)], brackets,
@@ -730,7 +741,7 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         out = []
         for b, tp in enumerate(tps):
             ok = (count > b + 1) & (slot_ts[b] < slot_ts[b + 1])
-            a, a2 = least(tp, range(b + 1))[1], least(tp, range(b + 1, n_slots))[1]
+            a, a2 = least(tp, rising(b))[1], least(tp, falling(b))[1]
             ga, gb = mi.Float(0.0), mi.Float(0.0)
             for j in range(n_slots):
                 ol, dl, half = slot_views[j]
