@@ -203,6 +203,39 @@ class _EvalTogether(dr.CustomOp):
         return "EvalTogether"
 
 
+class _NextSample(dr.CustomOp):
+    """Each lane's successor within its ray's block of ``m`` samples (the last sample of a
+    block is its own successor), for a list of arrays. The reverse pass gathers from the
+    predecessor instead of scatter-adding into it: no atomics (as a plain gather's reverse,
+    they were the largest integral kernel of the adaptive sampler's backward pass)."""
+
+    def eval(self, xs, m: int):
+        self.m = m
+        self.n = dr.width(xs[0])
+        lane = dr.arange(mi.UInt32, self.n)
+        nxt = dr.select((lane % m) == (m - 1), lane, lane + 1)
+        return [dr.gather(mi.Float, x, nxt) for x in xs]
+
+    def forward(self):
+        lane = dr.arange(mi.UInt32, self.n)
+        nxt = dr.select((lane % self.m) == (self.m - 1), lane, lane + 1)
+        self.set_grad_out([dr.gather(mi.Float, g, nxt) for g in self.grad_in("xs")])
+
+    def backward(self):
+        lane = dr.arange(mi.UInt32, self.n)
+        first, last = (lane % self.m) == 0, (lane % self.m) == (self.m - 1)
+        prev = dr.select(first, lane, lane - 1)
+        grads = list(self.grad_out())
+        dr.eval(grads)  # together: a gather would evaluate each alone
+        out = [dr.select(first, 0.0, dr.gather(mi.Float, g, prev)) + dr.select(last, g, 0.0)
+               for g in grads]
+        dr.eval(out)
+        self.set_grad_in("xs", out)
+
+    def name(self):
+        return "NextSample"
+
+
 @dataclass(frozen=True)
 class SamplingConfig:
     """Ray sampling settings of :class:`VSRDSilhouetteIntegrator` (see the plugin table)."""
@@ -379,15 +412,13 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
             w = dr.width(t)
             with dr.suspend_grad():
                 lane = dr.arange(mi.UInt32, w)
-                nxt = dr.select((lane % m) == (m - 1), lane, lane + 1)
-            # each sample's and its successor's SDFs straight from f_all: the integral's
-            # kernels need not wait for a gather from an evaluated scene SDF
-            sdfs = [dr.gather(mi.Float, f_all, lane + dr.opaque(mi.UInt32, start + b * w))
+            # each slot's SDFs are a slice of f_all: no two lanes of any of these gathers read
+            # the same entry, so their reverse (a scatter-add) needs no atomics
+            sdfs = [dr.gather(mi.Float, f_all, lane + dr.opaque(mi.UInt32, start + b * w),
+                              mode=dr.ReduceMode.NoConflicts)
                     for b in range(len(slot_inst))]
-            nexts = [dr.gather(mi.Float, f_all, nxt + dr.opaque(mi.UInt32, start + b * w))
-                     for b in range(len(slot_inst))]
             start += w * len(slot_inst)
-            for lab, ib in zip(self._integrate(sdfs, m, nexts, peak if self.cfg.ridge_gradients else None), slot_inst):
+            for lab, ib in zip(self._integrate(sdfs, m, peak if self.cfg.ridge_gradients else None), slot_inst):
                 dr.scatter_add(flat, lab, rays * n_inst + ib, active)
             self._count(dr.width(rays), m, len(slot_inst))
         idx = dr.arange(mi.UInt32, n_rays) * n_inst
@@ -452,26 +483,22 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
             out.append(f + self.field.ridge_correction(dec, p, time, mi.UInt32(k), ridge))
         return out
 
-    def _integrate(self, sdfs: list[mi.Float], m: int, nexts: list[mi.Float] | None = None,
+    def _integrate(self, sdfs: list[mi.Float], m: int,
                    peak: tuple[mi.UInt32, mi.UInt32, mi.Float] | None = None) -> list[mi.Float]:
         """Differentiable NeuS integral of instance SDFs at ``m`` sorted samples per ray
-        (``nexts``: the same SDFs at each lane's next sample, if the caller has them; ``peak``:
-        per lane the indices ``a, b`` of two instances crossing at a gap peak and the envelope
+        (``peak``: per lane the indices ``a, b`` of two instances crossing at a gap peak and the envelope
         weight of ``a``, ``-1`` for none, see :meth:`_gap_peaks`)."""
         n = dr.width(sdfs[0]) // m
         with dr.suspend_grad():
             lane = dr.arange(mi.UInt32, n * m)
             last = (lane % m) == (m - 1)
-            nxt = dr.select(last, lane, lane + 1)
         # every instance's SDFs (and their adjoints in the reverse pass) in one kernel
         sdfs = dr.custom(_EvalTogether, sdfs)
         f = scene_sdf(sdfs)
         if peak is not None and len(sdfs) > 1:
             f = self._crossing_gradient(f, sdfs, *peak)
         s = self.sharpness
-        if nexts is None:
-            nexts = [dr.gather(mi.Float, x, nxt) for x in sdfs]
-        nexts = dr.custom(_EvalTogether, nexts)
+        nexts = dr.custom(_NextSample, sdfs, m)
         f_next = scene_sdf(nexts)
         log1ma = dr.minimum(softplus(-s * f) - softplus(-s * f_next), 0.0)
         log1ma = dr.select(last, 0.0, log1ma)
