@@ -87,6 +87,9 @@ GRID = (
     BenchSetting("init-static-20", {"weights": {"init": 20.0}}),
     BenchSetting("containment", {"weights": {"projection_mode": "containment"}}),
     BenchSetting("paper", {}, paper=True),
+    #: the paper's schedule, losses and residual field with the adaptive sampler: separates the
+    #: sampler's share of the paper-vs-default difference from the schedule's
+    BenchSetting("paper-adaptive", {"sampling": "adaptive"}, paper=True),
 )
 
 #: --quick: the default and the switches the issues ask to be measured (one target per dataset).

@@ -211,6 +211,7 @@ class BoxOptimiser:
             centre_init = np.stack([b.centre for b in self.init_boxes])
             vel_init = np.stack([b.velocity for b in self.init_boxes])
         init_weights = np.where(self.dynamic, cfg.weights.init_dynamic, cfg.weights.init)
+        use_init = centre_init is not None and bool(np.any(init_weights > 0))
         history = {k: [] for k in ("total", "projection", "silhouette", "eikonal", "init")}
         conv = Convergence(cfg.early_stop.window, cfg.early_stop.rel_loss, cfg.early_stop.box_tol)
         sdf_evals = 0
@@ -254,7 +255,7 @@ class BoxOptimiser:
                 l_eik = losses.eikonal_loss(it.field, dec, it.field.residual_weights(), self.eik_points,
                                             cfg.eikonal_step)
                 total = total + w.eikonal * l_eik
-            if centre_init is not None and np.any(init_weights > 0):
+            if use_init:
                 l_init = losses.init_loss(dec, centre_init, vel_init if opt_vel is not None else None,
                                           self.dynamic, init_weights)
                 total = total + l_init
