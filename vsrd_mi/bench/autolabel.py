@@ -90,6 +90,8 @@ GRID = (
     #: the paper's schedule, losses and residual field with the adaptive sampler: separates the
     #: sampler's share of the paper-vs-default difference from the schedule's
     BenchSetting("paper-adaptive", {"sampling": "adaptive"}, paper=True),
+    #: ... and without the residual field (3000 box-only steps): separates the field's share
+    BenchSetting("paper-box-only", {"sampling": "adaptive", "residual": False}, paper=True),
 )
 
 #: --quick: the default and the switches the issues ask to be measured (one target per dataset).
