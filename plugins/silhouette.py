@@ -145,8 +145,9 @@ ACCRUAL_MIN_SLOPE = 1e-4
 #: Intervals starting deeper than ``-s * f_a`` > this use the midpoint (exp overflow guard; only
 #: rays starting inside a box reach such depths with non-zero transmittance).
 ACCRUAL_MAX_DEPTH = 30.0
-#: Gap peaks: boxes on each side of a gap (by deepest point) whose least SDF is searched.
-GAP_WINDOW = 2
+#: Gap peaks: boxes on each side of a gap (by deepest point) whose least SDF is searched
+#: (see VSRDSilhouetteIntegrator._gap_peaks).
+GAP_WINDOW = 4
 
 
 def golden_section(fs, brackets, iterations: int, label: str) -> list[mi.Float]:
@@ -731,8 +732,10 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         its maximum is where the least rising box meets the least falling one (with boxes side
         by side, not necessarily the two slots' own boxes). The search takes those least boxes
         over the ``GAP_WINDOW`` slots on each side of the gap, so its cost does not grow with
-        the square of the boxes a ray meets (12 boxes, s = 3 and 10: labels within 0.0004 of
-        the search over all of them). At that crossing ``B_a = B_a'``
+        the square of the boxes a ray meets. Measured against the search over all of them: 12
+        boxes at s = 3 and 10 the same labels; at s = 1 (bands 8 m wide) max error 0.0062
+        instead of 0.0017 (a window of 2: 0.0181); 20 boxes, 1k rays, a step takes 8 % longer
+        than with a window of 2, the full search 44 %. At that crossing ``B_a = B_a'``
         (``a`` rising with slope ``g_a > 0`` along the ray, ``a'`` falling, ``g_a' < 0``) the
         maximum's derivative is ``lambda_a dB_a + (1 - lambda_a) dB_a'`` with
         ``lambda_a = -g_a' / (g_a - g_a')`` (Danskin, as at a box's ridge); ``-1`` where the
