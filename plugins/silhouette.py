@@ -876,17 +876,28 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         return k1, self.cfg.band_samples - k1
 
     @staticmethod
-    def _sub_sample(a, b, i, k: int):
-        """``i``-th (1..k) sample of the sub-band ``(a, b]``; the one formula for values and ranks."""
-        return dr.fma(b - a, mi.Float(i) * (1.0 / k), a)  # one rounding wherever it is evaluated
+    def _sub_sample(a, b, i, k: int, dense_at_b: bool = False):
+        """``i``-th (1..k) sample of the sub-band ``(a, b]``; the one formula for values and ranks.
 
-    def _count_before(self, a, b, k: int, before):
+        The fraction ``u = i / k`` is warped to ``u^1.25`` (``1 - (1 - u)^1.25`` with
+        ``dense_at_b``), so samples crowd mildly towards the band's centre (the surface or the
+        closest approach), where opacity accrues and labels switch. Labels vs the reference,
+        3-12 boxes, s = 1-10, K = 16: p99 0.0008-0.0046 instead of 0.0009-0.0057, max
+        0.0022-0.0114 instead of 0.0045-0.0140 (exponent 1.5: p99 down to 0.0033, max up to
+        0.0178; 2: max up to 0.0189).
+        """
+        u = mi.Float(i) * (1.0 / k)
+        v = 1.0 - u if dense_at_b else u
+        v = v * dr.sqrt(dr.sqrt(v))  # v^1.25
+        return dr.fma(b - a, 1.0 - v if dense_at_b else v, a)  # one rounding wherever it is evaluated
+
+    def _count_before(self, a, b, k: int, before, dense_at_b: bool = False):
         """Number of samples ``i = 1..k`` of sub-band ``(a, b]`` for which ``before`` holds (it
         holds for a prefix of them: the samples are sorted). A binary search on the samples
         themselves: inverting the sample formula misplaced ranks by more than one where a band is
         narrow next to its distance (float rounding), which left rays unsorted."""
         first_after = dr.binary_search(
-            1, k + 1, lambda i: (i <= k) & before(self._sub_sample(a, b, dr.minimum(i, k), k)))
+            1, k + 1, lambda i: (i <= k) & before(self._sub_sample(a, b, dr.minimum(i, k), k, dense_at_b)))
         return first_after - 1
 
     def _adaptive_groups(self, dec, o, d, time):
@@ -938,7 +949,7 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
                     e0, lo, mid, hi, ex, pk = sl[b][:6]
                     ja = dr.minimum(dr.maximum(j, 1), k1)
                     jb = dr.minimum(dr.maximum(j, k1 + 1), kk) - k1
-                    tb = dr.select(j <= k1, self._sub_sample(lo, mid, ja, k1),
+                    tb = dr.select(j <= k1, self._sub_sample(lo, mid, ja, k1, True),
                                    self._sub_sample(mid, hi, jb, k2))
                     tb = dr.select(j == 0, e0, dr.select(j == kk + 1, ex, dr.select(is_peak, pk, tb)))
                     t = dr.select(band == b, tb, t)
@@ -953,7 +964,7 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
                     def before(x):
                         return (x < t) | (incl & (x == t))
 
-                    cnt = (self._count_before(lo, mid, k1, before) + self._count_before(mid, hi, k2, before)
+                    cnt = (self._count_before(lo, mid, k1, before, True) + self._count_before(mid, hi, k2, before)
                            + dr.select(before(e0), 1, 0) + dr.select(before(ex), 1, 0))
                     rank += dr.select(is_peak | (band != b), cnt, 0)
                     pk_before = (pk < t) | ((mi.UInt32(b) < band) & (pk == t))
