@@ -704,8 +704,9 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
                     ts_band = ts
                 # two-sided band around c, covering the descent in f from the enlarged box's
                 # entry (f >= w there) to c: hits then run to c + w and the deepest point,
-                # misses to the enlarged box's exit (f >= w again). Uniform in t on a side, which
-                # is close to uniform in f for a box; grazing rays get long but complete bands.
+                # misses to the enlarged box's exit (f >= w again). Spaced in t, crowding mildly
+                # towards c (see _sub_sample), which is close to uniform in f for a box; grazing
+                # rays get long but complete bands.
                 lo = e0
                 mid = dr.maximum(c, lo)
                 hi = dr.maximum(dr.select(hb, dr.minimum(c + w, dr.maximum(ts_band, c)), e1), mid)
