@@ -150,13 +150,36 @@ ACCRUAL_MAX_DEPTH = 30.0
 GAP_WINDOW = 4
 
 
+def golden_probes(a, b) -> tuple[mi.Float, mi.Float]:
+    """The two interior probes of a golden-section bracket ``(a, b)``."""
+    return b - GOLDEN * (b - a), a + GOLDEN * (b - a)
+
+
+def golden_step(state: tuple, f) -> tuple:
+    """One golden-section step on ``state = (a, b, x1, x2, f1, f2)`` (bracket, probes, values):
+    keeps the side of the lesser value and evaluates ``f`` at one new probe."""
+    a, b, x1, x2, f1, f2 = state
+    left = f1 < f2
+    a2, b2 = dr.select(left, a, x1), dr.select(left, x2, b)
+    p1, p2 = golden_probes(a2, b2)
+    xn = dr.select(left, p1, p2)
+    fn = f(xn)
+    return (a2, b2, dr.select(left, xn, x2), dr.select(left, x1, xn),
+            dr.select(left, fn, f2), dr.select(left, f1, fn))
+
+
+def golden_argmin(state: tuple) -> mi.Float:
+    """The lesser probe of a golden-section state."""
+    return dr.select(state[4] < state[5], state[2], state[3])
+
+
 def golden_section(fs, brackets, iterations: int, label: str) -> list[mi.Float]:
     """Per lane, ``argmin`` of each unimodal ``fs[i]`` on ``brackets[i] = (a, b)`` by
     ``iterations`` golden-section steps, all functions in one symbolic loop (detached use)."""
     state = [mi.UInt32(0)]
     for f, (a, b) in zip(fs, brackets):
         a, b = mi.Float(a), mi.Float(b)
-        x1, x2 = b - GOLDEN * (b - a), a + GOLDEN * (b - a)
+        x1, x2 = golden_probes(a, b)
         state += [a, b, x1, x2, f(x1), f(x2)]
 
     def cond(i, *s):
@@ -165,19 +188,24 @@ def golden_section(fs, brackets, iterations: int, label: str) -> list[mi.Float]:
     def body(i, *s):
         s = list(s)
         for k, f in enumerate(fs):
-            a, b, x1, x2, f1, f2 = s[6 * k:6 * k + 6]
-            left = f1 < f2
-            a2 = dr.select(left, a, x1)
-            b2 = dr.select(left, x2, b)
-            xn = dr.select(left, b2 - GOLDEN * (b2 - a2), a2 + GOLDEN * (b2 - a2))
-            fn = f(xn)
-            s[6 * k:6 * k + 6] = [a2, b2, dr.select(left, xn, x2), dr.select(left, x1, xn),
-                                  dr.select(left, fn, f2), dr.select(left, f1, fn)]
+            s[6 * k:6 * k + 6] = golden_step(tuple(s[6 * k:6 * k + 6]), f)
         return (i + 1, *s)
 
     state = dr.while_loop(tuple(state), cond, body, label=label)
-    return [dr.select(state[5 + 6 * k] < state[6 + 6 * k], state[3 + 6 * k], state[4 + 6 * k])
-            for k in range(len(fs))]
+    return [golden_argmin(state[1 + 6 * k:7 + 6 * k]) for k in range(len(fs))]
+
+
+def block_successor(n: int, m: int) -> mi.UInt32:
+    """Per lane of ``n`` (blocks of ``m`` samples per ray) the index of the next sample in its
+    block; the last sample of a block is its own successor."""
+    lane = dr.arange(mi.UInt32, n)
+    return dr.select((lane % m) == (m - 1), lane, lane + 1)
+
+
+def block_predecessor(n: int, m: int) -> mi.UInt32:
+    """Per lane the index of the previous sample in its block (the first is its own)."""
+    lane = dr.arange(mi.UInt32, n)
+    return dr.select((lane % m) == 0, lane, lane - 1)
 
 
 class _EvalTogether(dr.CustomOp):
@@ -213,19 +241,17 @@ class _NextSample(dr.CustomOp):
     def eval(self, xs, m: int):
         self.m = m
         self.n = dr.width(xs[0])
-        lane = dr.arange(mi.UInt32, self.n)
-        nxt = dr.select((lane % m) == (m - 1), lane, lane + 1)
+        nxt = block_successor(self.n, m)
         return [dr.gather(mi.Float, x, nxt) for x in xs]
 
     def forward(self):
-        lane = dr.arange(mi.UInt32, self.n)
-        nxt = dr.select((lane % self.m) == (self.m - 1), lane, lane + 1)
+        nxt = block_successor(self.n, self.m)
         self.set_grad_out([dr.gather(mi.Float, g, nxt) for g in self.grad_in("xs")])
 
     def backward(self):
         lane = dr.arange(mi.UInt32, self.n)
         first, last = (lane % self.m) == 0, (lane % self.m) == (self.m - 1)
-        prev = dr.select(first, lane, lane - 1)
+        prev = block_predecessor(self.n, self.m)
         grads = list(self.grad_out())
         dr.eval(grads)  # together: a gather would evaluate each alone
         out = [dr.select(first, 0.0, dr.gather(mi.Float, g, prev)) + dr.select(last, g, 0.0)
@@ -467,9 +493,8 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
             return sdfs
         with dr.suspend_grad():
             lane = dr.arange(mi.UInt32, dr.width(t))
-            i = lane % m
-            t_next = dr.gather(mi.Float, t, dr.select(i == m - 1, lane, lane + 1))
-            t_prev = dr.gather(mi.Float, t, dr.select(i == 0, lane, lane - 1))
+            t_next = dr.gather(mi.Float, t, block_successor(dr.width(t), m))
+            t_prev = dr.gather(mi.Float, t, block_predecessor(dr.width(t), m))
             tol = dr.maximum(2.0 * dr.maximum(t_next - t, t - t_prev), RIDGE_TOLERANCE)
             ray = lane // m
         out = []
@@ -501,10 +526,7 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         s = self.sharpness
         nexts = dr.custom(_NextSample, sdfs, m)
         f_next = scene_sdf(nexts)
-        log1ma = dr.minimum(softplus(-s * f) - softplus(-s * f_next), 0.0)
-        log1ma = dr.select(last, 0.0, log1ma)
-        log_t = dr.block_prefix_sum(log1ma, m, exclusive=True)
-        w = dr.exp(log_t) - dr.exp(log_t + log1ma)
+        w, log1ma = self._interval_weights(s, f, f_next, last, m)
         theta = self._accrual_position(s, f, f_next, log1ma)
         at = dr.custom(_EvalTogether, [a + (b - a) * theta for a, b in zip(sdfs, nexts)])
         labels = softmin_labels(at, self.temperature)
@@ -513,6 +535,15 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         # alone, recomputing the shared weights once per instance
         dr.eval(terms)
         return [dr.block_sum(x, m) for x in terms]
+
+    @staticmethod
+    def _interval_weights(s, f, f_next, last: mi.Bool, m: int) -> tuple[mi.Float, mi.Float]:
+        """NeuS weights ``w_i = T_i alpha_i`` of the intervals between each sample and the next
+        (``m`` per ray; ``last`` marks each ray's last sample, which starts no interval) and
+        ``log(1 - alpha_i)``, in log space (module docstring)."""
+        log1ma = dr.select(last, 0.0, dr.minimum(softplus(-s * f) - softplus(-s * f_next), 0.0))
+        log_t = dr.block_prefix_sum(log1ma, m, exclusive=True)
+        return dr.exp(log_t) - dr.exp(log_t + log1ma), log1ma
 
     @staticmethod
     def _crossing_gradient(f: mi.Float, sdfs: list[mi.Float], a: mi.UInt32, b: mi.UInt32,
@@ -568,11 +599,8 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
             f = scene_sdf(self.field.instance_sdfs(dec, p, tg, self.field.residual_weights(),
                                                    reach=self._residual_reach()))
             last = i == (nc - 1)
-            f_next = dr.gather(mi.Float, f, dr.select(last, lane, lane + 1))
-            s = self.sharpness
-            log1ma = dr.select(last, 0.0, dr.minimum(softplus(-s * f) - softplus(-s * f_next), 0.0))
-            log_t = dr.block_prefix_sum(log1ma, nc, exclusive=True)
-            w = dr.exp(log_t) - dr.exp(log_t + log1ma)
+            f_next = dr.gather(mi.Float, f, block_successor(n * nc, nc))
+            w, _ = self._interval_weights(self.sharpness, f, f_next, last, nc)
             # pdf over the nc - 1 intervals; a uniform floor guards rays whose weights vanish
             # (the reference divides by ~1e-6 there and sends samples to 1e6 m).
             total = dr.block_sum(w, nc)
@@ -774,7 +802,7 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
             ok = (count > b + 1) & (slot_ts[b] < slot_ts[b + 1])
             a, a2 = least(tp, rising(b))[1], least(tp, falling(b))[1]
             ga, gb = mi.Float(0.0), mi.Float(0.0)
-            for j in range(n_slots):
+            for j in [*rising(b), *falling(b)]:
                 ol, dl, half = slot_views[j]
                 g = dr.dot(box_normal_local(ol + tp * dl, half), dl)
                 ga, gb = dr.select(a == j, g, ga), dr.select(a2 == j, g, gb)
@@ -855,20 +883,17 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         t_best = dr.select(best_i == k, ts, dr.fma(step, mi.Float(best_i), a))
         lo = dr.maximum(t_best - step, a)
         hi = dr.minimum(t_best + step, b)
-        x1, x2 = hi - GOLDEN * (hi - lo), lo + GOLDEN * (hi - lo)
+        x1, x2 = golden_probes(lo, hi)
         f12 = sdf(concat([x1, x2]), 2)
-        f1, f2 = dr.gather(mi.Float, f12, lane), dr.gather(mi.Float, f12, lane + dr.opaque(mi.UInt32, width))
+        state = (lo, hi, x1, x2, dr.gather(mi.Float, f12, lane),
+                 dr.gather(mi.Float, f12, lane + dr.opaque(mi.UInt32, width)))
+        # unrolled, not golden_section's symbolic loop: the residual MLP runs as tensor-mode
+        # kernels, which cannot be traced inside one
         for _ in range(cfg.residual_golden):
-            left = f1 < f2
-            lo, hi = dr.select(left, lo, x1), dr.select(left, x2, hi)
-            xn = dr.select(left, hi - GOLDEN * (hi - lo), lo + GOLDEN * (hi - lo))
-            fn = sdf(xn, 1)
-            x1, x2, f1, f2 = (dr.select(left, xn, x2), dr.select(left, x1, xn),
-                              dr.select(left, fn, f2), dr.select(left, f1, fn))
-            dr.eval(lo, hi, x1, x2, f1, f2)
-        t_min = dr.select(f1 < f2, x1, x2)
-        f_min = dr.minimum(f1, f2)
-        t_min = dr.select(f_min < best_v, t_min, t_best)
+            state = golden_step(state, lambda x: sdf(x, 1))
+            dr.eval(state)
+        f_min = dr.minimum(state[4], state[5])
+        t_min = dr.select(f_min < best_v, golden_argmin(state), t_best)
         return [dr.gather(mi.Float, t_min, dr.arange(mi.UInt32, n) + dr.opaque(mi.UInt32, b_ * n))
                 for b_ in range(n_slots)]
 

@@ -39,6 +39,7 @@ import mitsuba as mi
 from vsrd_plugins.sdf import BoxRanges, instance_properties
 from vsrd_plugins.silhouette import VSRDSilhouetteIntegrator
 from vsrd_plugins.tracer import SDFTracerIntegrator
+from vsrd_mi.bench.integrator import new_kernels
 from vsrd_mi.optimise.losses import to_float
 
 #: Boxes per scene, cameras (cases) per example, rays per camera: fixed, so kernels compile once.
@@ -421,16 +422,6 @@ def test_tracer_stress(tracer, full):
 # ----------------------------------------------------------------------------------------------
 # fixed shapes: fresh rays every call compile nothing new
 # ----------------------------------------------------------------------------------------------
-
-
-def new_kernels(seen: set) -> int:
-    """JIT kernels launched since the last call whose code (hash) is not in ``seen`` (which is
-    updated). By hash, not by cache misses: a kernel generated anew but found in the on-disk
-    cache of an earlier run counts as a cache hit."""
-    hashes = {k["hash"] for k in dr.kernel_history() if k.get("type") == dr.KernelType.JIT}
-    fresh = len(hashes - seen)
-    seen |= hashes
-    return fresh
 
 
 @pytest.mark.parametrize("residual", [False, True])

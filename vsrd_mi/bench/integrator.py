@@ -287,6 +287,17 @@ class kernel_history:
         dr.set_flag(dr.JitFlag.KernelHistory, self._old)
 
 
+def new_kernels(seen: set) -> int:
+    """JIT kernels in Dr.Jit's kernel history (since it was last read) whose code, by hash, is
+    not in ``seen``; ``seen`` takes them. Unlike a count of cache misses, a kernel that an
+    earlier process wrote to the disk cache still counts as new where this process generates
+    it anew (a value baked into its code). Needs ``JitFlag.KernelHistory``."""
+    hashes = {k["hash"] for k in dr.kernel_history() if k.get("type") == dr.KernelType.JIT}
+    fresh = len(hashes - seen)
+    seen |= hashes
+    return fresh
+
+
 def weighted_loss(labels: list[mi.Float], weights: list[mi.Float]) -> mi.Float:
     """``sum_k sum_rays w_k * label_k`` over the instance labels."""
     total = dr.sum(labels[0] * weights[0])
