@@ -22,11 +22,12 @@ r"""Instance-aware NeuS silhouette integrator (``vsrd_silhouette``).
    - Adaptive sampling: ``K`` samples per band, at most ``B`` bands (instances) per ray (0: no
      limit), band half-width ``reach / s`` and culling margin ``reach * max(1/s, tau)``.
      (Default: 16, 0, 8)
- * - residual_scan, residual_golden
+ * - residual_scan, residual_golden, residual_tail
    - |int|
    - Adaptive sampling with the residual: points scanned per band for the least ``B + R``
-     along the ray, and golden-section steps refining it (0 scan points: use the box's least
-     ``B``). (Default: 4, 8)
+     along the ray, golden-section steps refining it (0 scan points: use the box's least
+     ``B``), and samples per hit band between that minimum and the enlarged box's exit, where
+     ``B + R`` can dip again (0: none). (Default: 4, 8, 8)
  * - coarse_samples, fine_samples
    - |int|
    - Dense sampling: stratified coarse and importance fine sample counts. (Default: 100, 100)
@@ -277,6 +278,10 @@ class SamplingConfig:
     #: best (see :meth:`VSRDSilhouetteIntegrator._residual_minima`).
     residual_scan: int = 4
     residual_golden: int = 8
+    #: With the residual field: samples per hit band from its least ``B + R`` to the enlarged
+    #: box's exit, where ``B + R`` can have further local minima (a ray along a face: the
+    #: residual's wiggles against a nearly constant ``B``); see :meth:`_tail_samples`.
+    residual_tail: int = 8
     ridge_gradients: bool = True
     coarse_samples: int = 100
     fine_samples: int = 100
@@ -294,6 +299,7 @@ class SamplingConfig:
             golden_iterations=int(props.get("golden_iterations", d.golden_iterations)),
             residual_scan=int(props.get("residual_scan", d.residual_scan)),
             residual_golden=int(props.get("residual_golden", d.residual_golden)),
+            residual_tail=int(props.get("residual_tail", d.residual_tail)),
             ridge_gradients=bool(props.get("ridge_gradients", d.ridge_gradients)),
             coarse_samples=int(props.get("coarse_samples", d.coarse_samples)),
             fine_samples=int(props.get("fine_samples", d.fine_samples)),
@@ -303,7 +309,8 @@ class SamplingConfig:
         if cfg.sampling not in ("adaptive", "dense"):
             raise ValueError(f"vsrd_silhouette: sampling must be 'adaptive' or 'dense', got {cfg.sampling!r}")
         if (cfg.band_samples < 2 or cfg.max_bands < 0 or cfg.coarse_samples < 2 or cfg.fine_samples < 1
-                or cfg.residual_scan == 1 or cfg.residual_scan < 0 or cfg.residual_golden < 0):
+                or cfg.residual_scan == 1 or cfg.residual_scan < 0 or cfg.residual_golden < 0
+                or cfg.residual_tail < 0):
             raise ValueError("vsrd_silhouette: sample counts too small")
         if not (0.0 <= cfg.near < cfg.far):
             raise ValueError("vsrd_silhouette: need 0 <= near < far")
@@ -723,7 +730,8 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
             fmin = None
             if self.field.residual_reach > 0 and cfg.residual_scan > 0:
                 fmin = self._residual_minima(dec, slot_views, slot_inst, count, picked)
-            slots, slot_hit, slot_ts = [], [], []
+            use_tail = fmin is not None and self._tail_samples()[1] > 0
+            slots, slot_hit, slot_ts, tails = [], [], [], []
             for b, (valid, e0, e1, ts, c, b1, hb) in enumerate(picked):
                 if fmin is not None:
                     c = dr.select(hb, c, fmin[b])
@@ -737,14 +745,20 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
                 # rays get long but complete bands.
                 lo = e0
                 mid = dr.maximum(c, lo)
-                hi = dr.maximum(dr.select(hb, dr.minimum(c + w, dr.maximum(ts_band, c)), e1), mid)
-                extra = dr.maximum(dr.select(hb, ts_band, e1), hi)
+                # with a tail (residual only) a band's second half ends a reach after its
+                # minimum, misses included, and the tail runs from there to the enlarged box's
+                # exit: B + R can dip again anywhere along the chord
+                far_end = dr.minimum(c + w, e1) if use_tail else e1
+                hi = dr.maximum(dr.select(hb, dr.minimum(c + w, dr.maximum(ts_band, c)), far_end), mid)
+                extra = dr.maximum(dr.select(hb, ts_band, far_end), hi)
                 slots.append(tuple(dr.select(valid, v, cfg.far) for v in (e0, lo, mid, hi, extra)))
+                tail = dr.maximum(e1, extra) if use_tail else extra
+                tails.append(dr.select(valid, tail, cfg.far))
                 slot_hit.append(valid & hb)
                 slot_ts.append(dr.select(valid, ts, cfg.far))
             peaks = self._gap_peaks(slot_views, slot_ts, count)
-            slots = [sl + (dr.select(ok, pk, sl[4]), dr.select(ok, lam, -1.0), pa, pb)
-                     for sl, (pk, ok, lam, pa, pb) in zip(slots, peaks)]
+            slots = [sl + (dr.select(ok, pk, sl[4]), dr.select(ok, lam, -1.0), pa, pb, tail)
+                     for sl, (pk, ok, lam, pa, pb), tail in zip(slots, peaks, tails)]
             dr.eval(count, slots, slot_inst, slot_hit)
         return ray_idx, count, slots, slot_inst, slot_hit
 
@@ -901,6 +915,18 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         k1 = self.cfg.band_samples // 2
         return k1, self.cfg.band_samples - k1
 
+    def _tail_samples(self) -> tuple[int, int]:
+        """Tail samples per band before and after its minimum sample (``residual_tail`` split in
+        two while the residual field is on, else none). With the field, ``B + R`` along a ray
+        that runs close to a face can have several local minima, each a descent whose opacity
+        telescopes separately; the band's own samples cover a reach on either side of the
+        least one only. The first tail fills a hit band from a reach past the surface entry to
+        the minimum, the second from the band's end to the enlarged box's exit.
+        """
+        on = self.field.residual_reach > 0 and self.cfg.residual_scan > 0
+        kt = self.cfg.residual_tail if on else 0
+        return kt // 2, kt - kt // 2
+
     @staticmethod
     def _sub_sample(a, b, i, k: int, dense_at_b: bool = False):
         """``i``-th (1..k) sample of the sub-band ``(a, b]``; the one formula for values and ranks.
@@ -917,13 +943,15 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         v = v * dr.sqrt(dr.sqrt(v))  # v^1.25
         return dr.fma(b - a, 1.0 - v if dense_at_b else v, a)  # one rounding wherever it is evaluated
 
-    def _count_before(self, a, b, k: int, before, dense_at_b: bool = False):
-        """Number of samples ``i = 1..k`` of sub-band ``(a, b]`` for which ``before`` holds (it
-        holds for a prefix of them: the samples are sorted). A binary search on the samples
-        themselves: inverting the sample formula misplaced ranks by more than one where a band is
-        narrow next to its distance (float rounding), which left rays unsorted."""
+    def _count_before(self, a, b, k: int, before, dense_at_b: bool = False, n: int | None = None):
+        """Number of samples ``i = 1..n`` (default ``k``) of the ``k`` of sub-band ``(a, b]`` for
+        which ``before`` holds (it holds for a prefix of them: the samples are sorted). A binary
+        search on the samples themselves: inverting the sample formula misplaced ranks by more
+        than one where a band is narrow next to its distance (float rounding), which left rays
+        unsorted."""
+        n = k if n is None else n
         first_after = dr.binary_search(
-            1, k + 1, lambda i: (i <= k) & before(self._sub_sample(a, b, dr.minimum(i, k), k, dense_at_b)))
+            1, n + 1, lambda i: (i <= n) & before(self._sub_sample(a, b, dr.minimum(i, n), k, dense_at_b)))
         return first_after - 1
 
     def _adaptive_groups(self, dec, o, d, time):
@@ -941,7 +969,9 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         peak (else ``-1``).
         """
         kk = self.cfg.band_samples
-        per = kk + 3
+        kp, kq = self._tail_samples()
+        j_ex = kk + kp + 1  # index of the extra sample: entry, K band samples, first tail, extra
+        per = j_ex + kq + 2  # ... second tail, gap peak
         ray_idx, count, slots, slot_inst, slot_hit = self._adaptive_bands(dec, o, d, time)
         if not slots:
             return
@@ -977,7 +1007,13 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
                     jb = dr.minimum(dr.maximum(j, k1 + 1), kk) - k1
                     tb = dr.select(j <= k1, self._sub_sample(lo, mid, ja, k1, True),
                                    self._sub_sample(mid, hi, jb, k2))
-                    tb = dr.select(j == 0, e0, dr.select(j == kk + 1, ex, dr.select(is_peak, pk, tb)))
+                    if kp:  # strictly inside (hi, ex): the extra sample follows
+                        jp = dr.minimum(dr.maximum(j, kk + 1), kk + kp) - kk
+                        tb = dr.select((j > kk) & (j < j_ex), self._sub_sample(hi, ex, jp, kp + 1), tb)
+                    if kq:
+                        jq = dr.minimum(dr.maximum(j, j_ex + 1), j_ex + kq) - j_ex
+                        tb = dr.select(j > j_ex, self._sub_sample(ex, sl[b][9], jq, kq), tb)
+                    tb = dr.select(j == 0, e0, dr.select(j == j_ex, ex, dr.select(is_peak, pk, tb)))
                     t = dr.select(band == b, tb, t)
                 # rank = own index in its band (0 for a peak) + the samples of the other groups
                 # that come before; ties: lower band first, a band's samples before any peak of
@@ -992,6 +1028,10 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
 
                     cnt = (self._count_before(lo, mid, k1, before, True) + self._count_before(mid, hi, k2, before)
                            + dr.select(before(e0), 1, 0) + dr.select(before(ex), 1, 0))
+                    if kp:
+                        cnt += self._count_before(hi, ex, kp + 1, before, n=kp)
+                    if kq:
+                        cnt += self._count_before(ex, sl[b][9], kq, before)
                     rank += dr.select(is_peak | (band != b), cnt, 0)
                     pk_before = (pk < t) | ((mi.UInt32(b) < band) & (pk == t))
                     rank += dr.select(is_peak & (band == b), 0, dr.select(pk_before, 1, 0))
