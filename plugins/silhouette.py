@@ -93,7 +93,9 @@ maxima and descents of ``f``, which is what the two sampling strategies target:
   ``B`` instances are evaluated on it. With the residual field the instance SDF ``B + R`` has
   its minimum off the box's (``R`` decides along a ray grazing a face): a detached scan and
   golden-section search of ``B + R`` per band (one batched residual evaluation per step) moves
-  the band's minimum sample there. Rays that meet no enlarged box return background at zero
+  the band's minimum sample there, and ``residual_tail`` more samples per band cover the rest of
+  the chord (half between a reach past a hit's entry and the minimum, half from the band's end
+  to the enlarged box's exit), where ``B + R`` can dip again. Rays that meet no enlarged box return background at zero
   cost (they are compacted away). Only sample
   positions are detached; SDF values at samples carry gradients.
 
