@@ -199,12 +199,12 @@ def test_adaptive_with_residual_samples_the_field_minimum():
     assert p99[4] <= 0.005 and p99[4] < p99[0]
 
 
-@pytest.mark.parametrize("seed, n_inst", [(28, 2), (20, 3)])
+@pytest.mark.parametrize("seed, n_inst", [(28, 2), (24, 3)])
 def test_adaptive_with_residual_samples_the_tails(seed, n_inst):
     """With the residual field ``B + R`` along a ray near a face can dip more than once; each
     descent's opacity telescopes separately. Tail samples (``residual_tail``) between a reach past
     the entry and the minimum, and from the band's end to the enlarged box's exit, catch the
-    others (s = 10; measured p99 0.0035 / 0.0103 with the tails, 0.0126 / 0.0265 without)."""
+    others (s = 10; measured p99 0.0025 / 0.0049 with the default 12, 0.0066 / 0.0095 without)."""
     rng = np.random.default_rng(seed)
     scene = random_scene(rng, n_inst)
     rays = to_mi(*training_rays(rng, scene, 256))
@@ -213,12 +213,13 @@ def test_adaptive_with_residual_samples_the_tails(seed, n_inst):
         ref = np.stack([np.array(x) for x in
                         reference_labels(make(scene, sampling="dense", **kw), scene, rays, 10.0)[:n_inst]])
         p99 = {}
-        for tail in (8, 0):
-            labels = make(scene, residual_tail=tail, **kw).render_rays(*rays)[:n_inst]
+        for tail in (None, 0):
+            opts = {} if tail is None else {"residual_tail": tail}
+            labels = make(scene, **opts, **kw).render_rays(*rays)[:n_inst]
             err = np.abs(np.stack([np.array(x) for x in labels]) - ref).max(axis=0)
             p99[tail] = float(np.quantile(err, 0.99))
     print(p99)
-    assert p99[8] <= 0.011 and p99[8] < 0.5 * p99[0]
+    assert p99[None] <= 0.006 and p99[None] < 0.6 * p99[0]
 
 
 @pytest.mark.parametrize("residual", [False, True])
