@@ -63,12 +63,13 @@ label of instance ``k`` is
 
 .. math::
 
-   \hat S_k = \sum_i w_i \, \mathrm{softmin}_k\big(F_i^* / \tau\big),
-   \qquad F_{k,i}^* = F_k(x_i) + \theta_i \big(F_k(x_{i+1}) - F_k(x_i)\big),
+   \hat S_k = \sum_i \frac{w_i}{2} \sum_{j=1,2} \mathrm{softmin}_k\big(F_{i,j}^* / \tau\big),
+   \qquad F_{k,i,j}^* = F_k(x_i) + \theta_{i,j} \big(F_k(x_{i+1}) - F_k(x_i)\big),
 
-where ``theta_i`` is the opacity-weighted mean position of the interval's weight with ``f``
-linear over it (:meth:`~VSRDSilhouetteIntegrator._accrual_position`; the surface crossing in
-the sharp limit). The background label is ``1 - sum_k S_k``. Because the opacities telescope
+where ``theta_{i,j}`` are the positions at which the interval has accrued the fractions
+``1/2 -+ 1/(2 sqrt 3)`` of its opacity with ``f`` linear over it (two-point Gauss-Legendre in
+the accrued opacity, :meth:`~VSRDSilhouetteIntegrator._accrual_quantiles`; both the surface
+crossing in the sharp limit). The background label is ``1 - sum_k S_k``. Because the opacities telescope
 over monotone stretches of ``f``, the result depends on where the samples resolve the minima,
 maxima and descents of ``f``, which is what the two sampling strategies target:
 
@@ -142,13 +143,15 @@ from .sdf import (RIDGE_TOLERANCE, InstanceField, box_normal_local, box_sdf_loca
                   envelope_weight, ray_box_interval, scene_sdf, softmin_labels, softplus)
 
 GOLDEN = 0.6180339887498949
-#: Below this interval opacity the label is taken at the interval midpoint (see _accrual_position).
+#: Below this interval opacity the labels are taken at uniform quantiles (see _accrual_quantiles).
 ACCRUAL_MIN_OPACITY = 1e-6
-#: Below this |s * (f_b - f_a)| an interval's SDF is treated as flat (label at the midpoint).
+#: Below this |s * (f_b - f_a)| an interval's SDF is treated as flat (uniform quantiles).
 ACCRUAL_MIN_SLOPE = 1e-4
-#: Intervals starting deeper than ``-s * f_a`` > this use the midpoint (exp overflow guard; only
+#: Intervals starting deeper than ``-s * f_a`` > this use uniform quantiles (exp overflow guard; only
 #: rays starting inside a box reach such depths with non-zero transmittance).
 ACCRUAL_MAX_DEPTH = 30.0
+#: Opacity fractions of an interval at which its labels are evaluated (two-point Gauss-Legendre).
+GAUSS_QUANTILES = (0.5 - 0.5 / 3.0 ** 0.5, 0.5 + 0.5 / 3.0 ** 0.5)
 #: Gap peaks: boxes on each side of a gap (by deepest point) whose least SDF is searched
 #: (see VSRDSilhouetteIntegrator._gap_peaks).
 GAP_WINDOW = 4
@@ -540,10 +543,12 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         nexts = dr.custom(_NextSample, sdfs, m)
         f_next = scene_sdf(nexts)
         w, log1ma = self._interval_weights(s, f, f_next, last, m)
-        theta = self._accrual_position(s, f, f_next, log1ma)
-        at = dr.custom(_EvalTogether, [a + (b - a) * theta for a, b in zip(sdfs, nexts)])
-        labels = softmin_labels(at, self.temperature)
-        terms = [w * lab for lab in labels]
+        labels = None
+        for theta in self._accrual_quantiles(s, f, f_next, log1ma):
+            at = dr.custom(_EvalTogether, [a + (b - a) * theta for a, b in zip(sdfs, nexts)])
+            lab = softmin_labels(at, self.temperature)
+            labels = lab if labels is None else [x + y for x, y in zip(labels, lab)]
+        terms = [(0.5 * w) * lab for lab in labels]
         # one kernel for every instance's terms: block_sum of an unevaluated array evaluates it
         # alone, recomputing the shared weights once per instance
         dr.eval(terms)
@@ -572,29 +577,37 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         return dr.select(ok, envelope_blend(f, fa, fb, lam), f)
 
     @staticmethod
-    def _accrual_position(s, fa, fb, log1ma) -> mi.Float:
-        """Opacity-weighted mean position ``E[theta]`` in [0, 1] of an interval's weight.
+    def _accrual_quantiles(s, fa, fb, log1ma) -> tuple[mi.Float, mi.Float]:
+        """Positions ``theta`` in [0, 1] where an interval has accrued the fractions ``q = 1/2 -+
+        1/(2 sqrt 3)`` of its opacity: the two-point Gauss-Legendre rule in ``q`` for the
+        opacity-weighted label ``int softmin(F(theta(q))) dq``.
 
-        With ``f`` linear over the interval, the opacity accrued up to ``theta`` is
-        ``A(theta) = 1 - Phi(f(theta)) / Phi(fa)`` and ``int_0^1 Phi(f) = (sp(s fb) - sp(s fa)) /
-        (s (fb - fa))`` (``sp`` = softplus), so ``E[theta] = 1 - (1 - I / Phi(fa)) / alpha``.
-        The labels are the softmin of the instance SDFs interpolated there: second-order
-        accurate in the sample spacing (the endpoint rule is first-order), and the surface
-        crossing in the sharp limit. Interpolating the SDFs rather than the endpoint labels
-        keeps a label switch between two boxes inside a long interval where the SDFs cross
-        (s = 10, K = 16, max error vs the reference: 3 boxes side by side 0.022 -> 0.014,
-        12 boxes 0.014 -> 0.007). Intervals with negligible opacity or a flat ``f`` use the
-        midpoint (their weight is ~0 or uniform).
+        With ``f`` linear over the interval, ``Phi(s f(theta)) = Phi(s fa) (1 - q alpha)`` at
+        the ``q`` quantile, so ``s f = L - log(Phi(-s fa) + Phi(s fa) q alpha)`` with ``L = log
+        Phi(s fa) + log(1 - q alpha)`` (both terms positive: no cancellation). Intervals with
+        negligible opacity or a flat ``f`` use the quantiles of a uniform weight.
+
+        Interpolating the instance SDFs there, not the endpoint labels, keeps a label switch
+        between two boxes inside a long interval where their SDFs cross. Against one point at
+        the opacity-weighted mean position, labels vs the reference (K = 16, slow-test scenes):
+        12 boxes at s = 3 max 0.0114 -> 0.0087, 3 boxes at s = 10 0.0078 -> 0.0040; bench 6 boxes
+        max 0.0016 -> 0.0007, at the same step time.
         """
         alpha = 1.0 - dr.exp(log1ma)
         df = fb - fa
         ok = ((alpha > ACCRUAL_MIN_OPACITY) & (dr.abs(s * df) > ACCRUAL_MIN_SLOPE)
               & (s * fa > -ACCRUAL_MAX_DEPTH))
+        sfa = s * fa
+        log_phi_a = -softplus(-sfa)
+        phi_a, phi_na = dr.exp(log_phi_a), dr.exp(-softplus(sfa))
         sdf_ = s * dr.select(ok, df, 1.0)
-        # I / Phi(fa) = (sp(s fb) - sp(s fa)) / (s df) * exp(sp(-s fa)), with sp(x) - sp(-x) = x
-        ratio = (softplus(s * fb) - softplus(s * fa)) / sdf_ * dr.exp(dr.select(ok, softplus(-s * fa), 0.0))
-        theta = 1.0 - (1.0 - ratio) / dr.select(ok, alpha, 1.0)
-        return dr.select(ok, dr.clip(theta, 0.0, 1.0), 0.5)
+        out = []
+        for q in GAUSS_QUANTILES:
+            qa = q * dr.select(ok, alpha, 0.5)
+            sf = log_phi_a + dr.log(1.0 - qa) - dr.log(phi_na + phi_a * qa)
+            theta = (sf - sfa) / sdf_
+            out.append(dr.select(ok, dr.clip(theta, 0.0, 1.0), q))
+        return out[0], out[1]
 
     # -- dense (reference) sampling ------------------------------------------------------------
     def _dense_positions(self, dec, o, d, time) -> tuple[mi.Float, int]:

@@ -167,6 +167,42 @@ def accuracy_case(n_inst: int, s: float, n_rays: int, seed: int, with_grads: boo
     return out
 
 
+def np_accrual_quantile(s: float, fa: float, fb: float, q: float, n: int = 200_000) -> float:
+    """Where an interval with ``f`` linear from ``fa`` to ``fb`` has accrued the fraction ``q`` of
+    its NeuS opacity, by brute force: the discrete NeuS opacity of ``n`` sub-intervals
+    (float64), accumulated and interpolated (independent of the closed form)."""
+    f = np.linspace(fa, fb, n + 1)
+    phi = 1.0 / (1.0 + np.exp(-s * f))
+    trans = phi / phi[0]  # transmittance after each sub-interval (telescoped, descending f)
+    acc = 1.0 - trans
+    return float(np.interp(q * acc[-1], acc, np.linspace(0.0, 1.0, n + 1)))
+
+
+@pytest.mark.parametrize("s, fa, fb", [(10.0, 0.3, -0.2), (3.0, 1.0, 0.2), (1.0, 0.5, -2.0),
+                                        (100.0, 0.05, -0.05), (10.0, -0.5, -0.9), (1000.0, 0.2, -0.1)])
+def test_accrual_quantiles_match_brute_force(s, fa, fb):
+    """The two label positions of an interval are where it has accrued the Gauss-Legendre
+    fractions of its opacity; in the sharp limit both sit at the surface crossing."""
+    from vsrd_plugins.silhouette import GAUSS_QUANTILES
+    log1ma = mi.Float(float(np.logaddexp(0.0, -s * fa) - np.logaddexp(0.0, -s * fb)))  # log(1 - alpha)
+    thetas = VSRDSilhouetteIntegrator._accrual_quantiles(mi.Float(s), mi.Float(fa), mi.Float(fb), log1ma)
+    for q, theta in zip(GAUSS_QUANTILES, thetas):
+        expected = np_accrual_quantile(s, fa, fb, q)
+        assert abs(float(theta[0]) - expected) < 2e-3, (q, float(theta[0]), expected)
+    if s >= 1000.0:
+        crossing = fa / (fa - fb)
+        assert all(abs(float(t[0]) - crossing) < 0.02 for t in thetas)
+
+
+def test_accrual_quantiles_of_flat_or_rising_intervals_are_uniform():
+    """No opacity (``f`` rising) or a flat ``f``: the quantiles of a uniform weight."""
+    from vsrd_plugins.silhouette import GAUSS_QUANTILES
+    fa, fb = mi.Float([0.1, 0.3]), mi.Float([0.4, 0.3])
+    thetas = VSRDSilhouetteIntegrator._accrual_quantiles(mi.Float(10.0), fa, fb, mi.Float([0.0, 0.0]))
+    for q, theta in zip(GAUSS_QUANTILES, thetas):
+        np.testing.assert_allclose(np.array(theta), [q, q], atol=1e-7)
+
+
 # default: small cases (a cold 6-instance adaptive compile alone takes ~90 s on 2 cores);
 # 6 and 12 instances run in the slow full test.
 @pytest.mark.parametrize("n_inst,s", [(1, 10.0), (3, 3.0), (2, 10.0)])
@@ -199,12 +235,12 @@ def test_adaptive_with_residual_samples_the_field_minimum():
     assert p99[4] <= 0.005 and p99[4] < p99[0]
 
 
-@pytest.mark.parametrize("seed, n_inst", [(28, 2), (24, 3)])
+@pytest.mark.parametrize("seed, n_inst", [(21, 2), (24, 3)])
 def test_adaptive_with_residual_samples_the_tails(seed, n_inst):
     """With the residual field ``B + R`` along a ray near a face can dip more than once; each
     descent's opacity telescopes separately. Tail samples (``residual_tail``) between a reach past
     the entry and the minimum, and from the band's end to the enlarged box's exit, catch the
-    others (s = 10; measured p99 0.0025 / 0.0049 with the default 12, 0.0066 / 0.0095 without)."""
+    others (s = 10; measured p99 0.0025 / 0.0049 with the default 12, 0.0054 / 0.0095 without)."""
     rng = np.random.default_rng(seed)
     scene = random_scene(rng, n_inst)
     rays = to_mi(*training_rays(rng, scene, 256))
