@@ -665,8 +665,10 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         """Detached per-ray band search.
 
         Returns ``(ray_idx, count, slots, slot_inst, slot_hit)``: indices of rays meeting at least
-        one enlarged box, their number of bands, per slot ``(entry, lo, mid, hi, extra)`` arrays
-        (slots sorted by the box's deepest point / closest approach along the ray, which
+        one enlarged box, their number of bands, per slot ``(entry, lo, mid, hi, extra, peak,
+        lambda, a, b, tail_end)`` arrays (the gap peak after the band with its crossing slots and
+        envelope weight, see :meth:`_gap_peaks`; the end of the second tail, see
+        :meth:`_tail_samples`; slots sorted by the box's deepest point / closest approach along the ray, which
         :meth:`_gap_peaks` needs; a ray's valid slots come first), per slot the band's instance
         (``num_instances`` for an empty slot) and whether the ray enters that box (then ``extra``
         is the deepest point of the box along the ray).
