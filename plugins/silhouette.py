@@ -97,9 +97,9 @@ maxima and descents of ``f``, which is what the two sampling strategies target:
   ``B + R`` per band (one batched residual evaluation; golden-section steps can refine it) moves
   the band's minimum sample there, and ``residual_tail`` more samples per band cover the rest of
   the chord (half between a reach past a hit's entry and the minimum, half from the band's end
-  to the enlarged box's exit), where ``B + R`` can dip again. Rays that meet no enlarged box return background at zero
-  cost (they are compacted away). Only sample
-  positions are detached; SDF values at samples carry gradients.
+  to the enlarged box's exit), where ``B + R`` can dip again. Rays that meet no enlarged box
+  return background at zero cost (they are compacted away). Only sample positions are detached;
+  SDF values at samples carry gradients.
 
 Gradients at a box's interior ridges
 ------------------------------------
@@ -668,8 +668,8 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         one enlarged box, their number of bands, per slot ``(entry, lo, mid, hi, extra, peak,
         lambda, a, b, tail_end)`` arrays (the gap peak after the band with its crossing slots and
         envelope weight, see :meth:`_gap_peaks`; the end of the second tail, see
-        :meth:`_tail_samples`; slots sorted by the box's deepest point / closest approach along the ray, which
-        :meth:`_gap_peaks` needs; a ray's valid slots come first), per slot the band's instance
+        :meth:`_tail_samples`; slots sorted by the box's deepest point / closest approach along
+        the ray, which :meth:`_gap_peaks` needs; a ray's valid slots come first), per slot the band's instance
         (``num_instances`` for an empty slot) and whether the ray enters that box (then ``extra``
         is the deepest point of the box along the ray).
         """
