@@ -551,7 +551,8 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
             at = dr.custom(_EvalTogether, [a + (b - a) * theta for a, b in zip(sdfs, nexts)])
             lab = softmin_labels(at, self.temperature)
             labels = lab if labels is None else [x + y for x, y in zip(labels, lab)]
-        terms = [(0.5 * w) * lab for lab in labels]
+        w_point = w * (1.0 / len(GAUSS_QUANTILES))  # equal Gauss-Legendre weights
+        terms = [w_point * lab for lab in labels]
         # one kernel for every instance's terms: block_sum of an unevaluated array evaluates it
         # alone, recomputing the shared weights once per instance
         dr.eval(terms)
@@ -580,7 +581,7 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         return dr.select(ok, envelope_blend(f, fa, fb, lam), f)
 
     @staticmethod
-    def _accrual_quantiles(s, fa, fb, log1ma) -> tuple[mi.Float, mi.Float]:
+    def _accrual_quantiles(s, fa, fb, log1ma) -> tuple[mi.Float, ...]:
         """Positions ``theta`` in [0, 1] where an interval has accrued the fractions ``q = 1/2 -+
         1/(2 sqrt 3)`` of its opacity: the two-point Gauss-Legendre rule in ``q`` for the
         opacity-weighted label ``int softmin(F(theta(q))) dq``.
@@ -610,7 +611,7 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
             sf = log_phi_a + dr.log(1.0 - qa) - dr.log(phi_na + phi_a * qa)
             theta = (sf - sfa) / sdf_
             out.append(dr.select(ok, dr.clip(theta, 0.0, 1.0), q))
-        return out[0], out[1]
+        return tuple(out)
 
     # -- dense (reference) sampling ------------------------------------------------------------
     def _dense_positions(self, dec, o, d, time) -> tuple[mi.Float, int]:
@@ -752,9 +753,9 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
             # with the residual the instance SDF B + R has its minimum near, not at, the box's:
             # the band ends there instead (the gap peaks and the slot order stay the box's)
             fmin = None
-            if self.field.residual_reach > 0 and cfg.residual_scan > 0:
+            if self._residual_search():
                 fmin = self._residual_minima(dec, slot_views, slot_inst, count, picked)
-            use_tail = fmin is not None and self._tail_samples()[1] > 0
+            use_tail = self._tail_samples()[1] > 0
             slots, slot_hit, slot_ts, tails = [], [], [], []
             for b, (valid, e0, e1, ts, c, b1, hb) in enumerate(picked):
                 if fmin is not None:
@@ -918,23 +919,21 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
             v = dr.gather(mi.Float, values, lane + dr.opaque(mi.UInt32, i * width))
             better = v < best_v
             best_v, best_i = dr.select(better, v, best_v), dr.select(better, i, best_i)
-        t_best = dr.select(best_i == k, ts, dr.fma(step, mi.Float(best_i), a))
-        if cfg.residual_golden == 0:
-            return [dr.gather(mi.Float, t_best, dr.arange(mi.UInt32, n) + dr.opaque(mi.UInt32, b_ * n))
-                    for b_ in range(n_slots)]
-        lo = dr.maximum(t_best - step, a)
-        hi = dr.minimum(t_best + step, b)
-        x1, x2 = golden_probes(lo, hi)
-        f12 = sdf(concat([x1, x2]), 2)
-        state = (lo, hi, x1, x2, dr.gather(mi.Float, f12, lane),
-                 dr.gather(mi.Float, f12, lane + dr.opaque(mi.UInt32, width)))
-        # unrolled, not golden_section's symbolic loop: the residual MLP runs as tensor-mode
-        # kernels, which cannot be traced inside one
-        for _ in range(cfg.residual_golden):
-            state = golden_step(state, lambda x: sdf(x, 1))
-            dr.eval(state)
-        f_min = dr.minimum(state[4], state[5])
-        t_min = dr.select(f_min < best_v, golden_argmin(state), t_best)
+        t_min = dr.select(best_i == k, ts, dr.fma(step, mi.Float(best_i), a))
+        if cfg.residual_golden > 0:  # refine between the best candidate's neighbours
+            lo = dr.maximum(t_min - step, a)
+            hi = dr.minimum(t_min + step, b)
+            x1, x2 = golden_probes(lo, hi)
+            f12 = sdf(concat([x1, x2]), 2)
+            state = (lo, hi, x1, x2, dr.gather(mi.Float, f12, lane),
+                     dr.gather(mi.Float, f12, lane + dr.opaque(mi.UInt32, width)))
+            # unrolled, not golden_section's symbolic loop: the residual MLP runs as tensor-mode
+            # kernels, which cannot be traced inside one
+            for _ in range(cfg.residual_golden):
+                state = golden_step(state, lambda x: sdf(x, 1))
+                dr.eval(state)
+            f_min = dr.minimum(state[4], state[5])
+            t_min = dr.select(f_min < best_v, golden_argmin(state), t_min)
         return [dr.gather(mi.Float, t_min, dr.arange(mi.UInt32, n) + dr.opaque(mi.UInt32, b_ * n))
                 for b_ in range(n_slots)]
 
@@ -950,9 +949,13 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         least one only. The first tail fills a hit band from a reach past the surface entry to
         the minimum, the second from the band's end to the enlarged box's exit.
         """
-        on = self.field.residual_reach > 0 and self.cfg.residual_scan > 0
-        kt = self.cfg.residual_tail if on else 0
+        kt = self.cfg.residual_tail if self._residual_search() else 0
         return kt // 2, kt - kt // 2
+
+    def _residual_search(self) -> bool:
+        """Whether bands are placed at the least ``B + R`` (:meth:`_residual_minima`): the
+        residual field is on and ``residual_scan > 0``. The tail samples come with it."""
+        return self.field.residual_reach > 0 and self.cfg.residual_scan > 0
 
     @staticmethod
     def _sub_sample(a, b, i, k: int, dense_at_b: bool = False):
