@@ -988,11 +988,12 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         """Sample positions for the adaptive strategy, one group per band count.
 
         Yields ``(ray_idx, t, m, active, inst, deepest, peak)``: rays with exactly ``g`` bands get
-        ``m = g (K + 3)`` samples (entry, ``K`` band samples, closest approach / exit, and the scene
-        SDF's peak before the next band, per band), merged in order by rank: a sample's index in
-        its band plus, per other band, how many of that band's samples come before it (a binary
-        search: bands are internally sorted), so no per-ray sort is needed. ``active``
-        masks the padding copy of a single-ray group; ``inst`` holds the ``g`` band instances of
+        ``m = g (K + 3 + T)`` samples (entry, ``K`` band samples, the first tail, closest approach /
+        exit, the second tail, and the scene SDF's peak before the next band, per band; ``T`` tail
+        samples only with the residual search, :meth:`_tail_samples`), merged in order by rank: a
+        sample's index in its band plus, per other band, how many of that band's samples come
+        before it (a binary search: bands are internally sorted), so no per-ray sort is needed.
+        ``active`` masks the padding copy of a single-ray group; ``inst`` holds the ``g`` band instances of
         each ray (the only instances evaluated at its samples); ``deepest`` is, per sample, the band
         whose box's deepest point along the ray this sample is (``g`` for none); ``peak`` per sample
         the two bands whose boxes cross there and the envelope weight of the first if it is a gap
@@ -1028,7 +1029,8 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
                 sl = [tuple(dr.gather(mi.Float, v, rows) for v in slots[b]) for b in range(g)]
                 k1, k2 = self._halves()
                 # this lane's own sample value: entry, K/2 samples in (lo, mid], K/2 in (mid, hi],
-                # extra, and the gap peak after the band (its own one-sample group in the merge)
+                # the first tail in (hi, extra), extra, the second tail in (extra, tail end], and
+                # the gap peak after the band (its own one-sample group in the merge)
                 is_peak = j == per - 1
                 t = mi.Float(0.0)
                 for b in range(g):
