@@ -291,6 +291,9 @@ class SamplingConfig:
     #: box's exit, where ``B + R`` can have further local minima (a ray along a face: the
     #: residual's wiggles against a nearly constant ``B``); see :meth:`_tail_samples`.
     residual_tail: int = 12
+    #: Band samples of rays whose bands are isolated (see :meth:`VSRDSilhouetteIntegrator._isolated`;
+    #: 0: ``band_samples`` for every ray). Without the residual field only.
+    isolated_band_samples: int = 2
     ridge_gradients: bool = True
     coarse_samples: int = 100
     fine_samples: int = 100
@@ -309,6 +312,7 @@ class SamplingConfig:
             residual_scan=int(props.get("residual_scan", d.residual_scan)),
             residual_golden=int(props.get("residual_golden", d.residual_golden)),
             residual_tail=int(props.get("residual_tail", d.residual_tail)),
+            isolated_band_samples=int(props.get("isolated_band_samples", d.isolated_band_samples)),
             ridge_gradients=bool(props.get("ridge_gradients", d.ridge_gradients)),
             coarse_samples=int(props.get("coarse_samples", d.coarse_samples)),
             fine_samples=int(props.get("fine_samples", d.fine_samples)),
@@ -319,7 +323,7 @@ class SamplingConfig:
             raise ValueError(f"vsrd_silhouette: sampling must be 'adaptive' or 'dense', got {cfg.sampling!r}")
         if (cfg.band_samples < 2 or cfg.max_bands < 0 or cfg.coarse_samples < 2 or cfg.fine_samples < 1
                 or cfg.residual_scan == 1 or cfg.residual_scan < 0 or cfg.residual_golden < 0
-                or cfg.residual_tail < 0):
+                or cfg.residual_tail < 0 or cfg.isolated_band_samples == 1 or cfg.isolated_band_samples < 0):
             raise ValueError("vsrd_silhouette: sample counts too small")
         if not (0.0 <= cfg.near < cfg.far):
             raise ValueError("vsrd_silhouette: need 0 <= near < far")
@@ -697,13 +701,15 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
                 tout.append(dr.minimum(b1, cfg.far))
             any_act = act[0]
             for a in act[1:]:
-                any_act |= a
+                # not ``|=``: Dr.Jit's in-place operators update the array object itself, which
+                # is act[0] (instance 0 then met every ray that met any box)
+                any_act = any_act | a
             # one kernel for every per-instance ray quantity (a gather from an unevaluated
             # array evaluates it alone: 10 small kernels per instance)
             dr.eval(any_act, views, entry, exit_, act, hit, tin, tout)
             ray_idx = dr.compress(any_act)
             if dr.width(ray_idx) == 0:
-                return ray_idx, None, [], [], []
+                return ray_idx, None, [], [], [], None
 
             def sel(x, ty=mi.Float):
                 return dr.gather(ty, x, ray_idx)
@@ -784,8 +790,29 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
             peaks = self._gap_peaks(slot_views, slot_ts, count)
             slots = [sl + (dr.select(ok, pk, sl[4]), dr.select(ok, lam, -1.0), pa, pb, tail)
                      for sl, (pk, ok, lam, pa, pb), tail in zip(slots, peaks, tails)]
-            dr.eval(count, slots, slot_inst, slot_hit)
-        return ray_idx, count, slots, slot_inst, slot_hit
+            isolated = self._isolated(picked, count)
+            dr.eval(count, slots, slot_inst, slot_hit, isolated)
+        return ray_idx, count, slots, slot_inst, slot_hit, isolated
+
+    def _isolated(self, picked: list[tuple], count: mi.UInt32) -> mi.Bool:
+        """Rays whose enlarged-box intervals are pairwise disjoint (no residual field; all rays
+        when ``isolated_band_samples`` is 0 or the field is on: none).
+
+        Then at every sample of a band every other instance lies beyond its culling margin, so
+        its softmin share is below ``exp(-reach)`` and the band's labels are its opacity; and
+        the opacity telescopes exactly over each monotone stretch of the (convex) box SDF, whose
+        ends the band already samples: the enlarged box's entry, the surface entry or closest
+        approach, the deepest point, and the gap peaks. Such a band needs no more samples in
+        between; ``isolated_band_samples`` (one per half) keep the layout. Slots are sorted by
+        closest approach, which lies in each interval, so checking consecutive slots suffices.
+        """
+        if self.cfg.isolated_band_samples == 0 or self.field.residual_reach > 0:
+            return mi.Bool(False)
+        isolated = mi.Bool(True)
+        for b in range(len(picked) - 1):
+            exit_b, entry_next = picked[b][2], picked[b + 1][1]
+            isolated &= (count <= b + 1) | (exit_b < entry_next)
+        return isolated
 
     def _gap_peaks(self, slot_views, slot_ts, count) -> list[tuple]:
         """Per slot ``b`` (slots sorted by deepest point): the maximum of the scene SDF (the min
@@ -937,9 +964,11 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         return [dr.gather(mi.Float, t_min, dr.arange(mi.UInt32, n) + dr.opaque(mi.UInt32, b_ * n))
                 for b_ in range(n_slots)]
 
-    def _halves(self) -> tuple[int, int]:
-        k1 = self.cfg.band_samples // 2
-        return k1, self.cfg.band_samples - k1
+    @staticmethod
+    def _halves(kk: int) -> tuple[int, int]:
+        """Band samples before and after a band's centre."""
+        k1 = kk // 2
+        return k1, kk - k1
 
     def _tail_samples(self) -> tuple[int, int]:
         """Tail samples per band before and after its minimum sample (``residual_tail`` split in
@@ -999,16 +1028,19 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         the two bands whose boxes cross there and the envelope weight of the first if it is a gap
         peak (else ``-1``).
         """
-        kk = self.cfg.band_samples
         kp, kq = self._tail_samples()
-        j_ex = kk + kp + 1  # index of the extra sample: entry, K band samples, first tail, extra
-        per = j_ex + kq + 2  # ... second tail, gap peak
-        ray_idx, count, slots, slot_inst, slot_hit = self._adaptive_bands(dec, o, d, time)
+        ray_idx, count, slots, slot_inst, slot_hit, isolated = self._adaptive_bands(dec, o, d, time)
         if not slots:
             return
-        for g in range(1, len(slots) + 1):
+        # (isolated rays?, K): rays of isolated bands get their own groups with fewer samples
+        layouts = [(False, self.cfg.band_samples)]
+        if self.cfg.isolated_band_samples and self.field.residual_reach == 0:
+            layouts.append((True, self.cfg.isolated_band_samples))
+        for g, (iso, kk) in ((g, lay) for g in range(1, len(slots) + 1) for lay in layouts):
+            j_ex = kk + kp + 1  # index of the extra sample: entry, K band samples, first tail, extra
+            per = j_ex + kq + 2  # ... second tail, gap peak
             with dr.suspend_grad():
-                sub = dr.compress(count == g)
+                sub = dr.compress((count == g) & (isolated == iso))
                 na = dr.width(sub)
                 if na == 0:
                     continue
@@ -1027,7 +1059,7 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
                 j = q % per
                 rows = dr.gather(mi.UInt32, sub, r)
                 sl = [tuple(dr.gather(mi.Float, v, rows) for v in slots[b]) for b in range(g)]
-                k1, k2 = self._halves()
+                k1, k2 = self._halves(kk)
                 # this lane's own sample value: entry, K/2 samples in (lo, mid], K/2 in (mid, hi],
                 # the first tail in (hi, extra), extra, the second tail in (extra, tail end], and
                 # the gap peak after the band (its own one-sample group in the merge)

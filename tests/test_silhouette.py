@@ -266,11 +266,13 @@ def test_adaptive_samples_are_merged_in_order(residual):
     o, d, t = training_rays(rng, scene, 512, max_time=2.0)
     it = make(scene, sharpness=1.0, temperature=1.0, residual=residual)
     kk = it.cfg.band_samples + (it.cfg.residual_tail if residual else 0)
+    # isolated rays' groups (no residual field only) use the smaller layout
+    layouts = {kk + 3} | ({it.cfg.isolated_band_samples + 3} if not residual else set())
     groups = 0
     with dr.suspend_grad():
         for rays, ts, m, active, inst, deepest, peak in it._adaptive_groups(it.field.decode(), *to_mi(o, d, t)):
             g = len(inst)
-            assert m == g * (kk + 3)
+            assert m % g == 0 and m // g in layouts
             T = np.array(ts, dtype=np.float64).reshape(-1, m)
             steps = np.diff(T, axis=1)
             assert steps.min() >= -1e-6 * max(1.0, np.abs(T).max()), steps.min()
@@ -279,6 +281,58 @@ def test_adaptive_samples_are_merged_in_order(residual):
             assert not any(np.any(row[f:] == 0) for row, f in zip(T, first))
             groups += 1
     assert groups >= 3  # several band counts were exercised
+
+
+def test_isolated_rays_are_those_whose_boxes_do_not_interact():
+    """A ray is isolated when the enlarged boxes it meets are disjoint along it: two boxes 10 m
+    apart on one line of sight are, two boxes 0.2 m apart side by side are not (their culling
+    margins overlap); with the residual field no ray is."""
+    centres = np.array([[0.0, 0.0, 10.0], [0.0, 0.0, 20.0], [2.1, 0.0, 20.0]])
+    scene = {"centres": centres, "sizes": np.array([[1.9, 1.5, 4.0]] * 3), "yaws": np.zeros(3)}
+    # one ray through the first two boxes' centres, one grazing between the side-by-side pair
+    d = np.array([[0.0, 0.0, 1.0], [1.05 / 20.0, 0.0, 1.0]])
+    rays = to_mi(np.zeros((2, 3)), d / np.linalg.norm(d, axis=1, keepdims=True), np.zeros(2))
+    for residual, expected in ((False, [True, False]), (True, [False, False])):
+        it = make(scene, sharpness=10.0, temperature=0.1, residual=residual)
+        with dr.suspend_grad():
+            ray_idx, count, *_, isolated = it._adaptive_bands(it.field.decode(), *rays)
+        assert list(np.array(count)) == [2, 3]
+        assert list(np.broadcast_to(np.array(isolated), 2)) == expected
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_isolated_band_samples_keep_labels_and_gradients(seed):
+    """Isolated rays' bands with 2 samples instead of K = 16 give the same labels (to float
+    rounding of the telescoped sums: measured <= 0.0006) and gradients (cosine 1.0000) on
+    6-box scenes with touching pairs, with 11-34 % fewer samples."""
+    rng = np.random.default_rng(seed)
+    scene = random_scene(rng, 6, dynamic=True)
+    o, d, t = training_rays(rng, scene, 512, max_time=2.0)
+    rays = to_mi(o, d, t)
+    weights = [mi.Float(rng.normal(size=512).astype(np.float32)) for _ in range(6)]
+    out = {}
+    for name, kw in (("isolated", {}), ("full", {"isolated_band_samples": 0})):
+        it = make(scene, sharpness=10.0, temperature=0.1, **kw)
+        out[name] = labels_and_grads(it, lambda it: it.render_rays(*rays), weights) + (it.last_stats["samples"],)
+    assert np.abs(out["isolated"][0] - out["full"][0]).max() <= 2e-3
+    assert cosine(out["isolated"][1], out["full"][1]) >= 0.9999
+    assert out["isolated"][2] < 0.95 * out["full"][2]
+
+
+def test_rays_meeting_one_box_evaluate_only_that_box():
+    """Rays aimed at the second of two far-apart boxes evaluate it alone (one SDF evaluation per
+    sample). Instance 0 used to be marked as met by every ray meeting any box (an in-place
+    ``|=`` on its own mask) and got a band of its own on each of them."""
+    scene = {"centres": np.array([[-8.0, 0.5, 15.0], [6.0, 0.5, 15.0]]),
+             "sizes": np.array([[1.8, 1.5, 4.2], [2.0, 1.6, 4.5]]), "yaws": np.array([0.3, -0.4])}
+    rng = np.random.default_rng(3)
+    d = scene["centres"][1] + rng.uniform(-0.8, 0.8, (64, 3))
+    rays = to_mi(np.zeros((64, 3)), d / np.linalg.norm(d, axis=1, keepdims=True), np.zeros(64))
+    it = make(scene, sharpness=10.0, temperature=0.1)
+    with dr.suspend_grad():
+        labels = it.render_rays(*rays)
+    assert it.last_stats["rays"] == 64 and it.last_stats["sdf_evals"] == it.last_stats["samples"]
+    assert np.all(np.array(labels[0]) == 0.0) and np.all(np.array(labels[1]) > 0.5)
 
 
 @pytest.mark.slow
