@@ -286,8 +286,26 @@ def box_sdf_ray_local(p: mi.Vector3f, d: mi.Vector3f, half: mi.Vector3f,
     """
     f = box_sdf_local(p, half)
     faces = [p[i] - half[i] for i in range(3)] + [-p[i] - half[i] for i in range(3)]
+    ridge, ia, ib, lam = ridge_faces(p, d, half, tol)
+
+    def face(idx):
+        out = faces[5]
+        for j in range(4, -1, -1):
+            out = dr.select(idx == j, faces[j], out)
+        return out
+
+    return dr.select(ridge, envelope_blend(f, face(ia), face(ib), lam), f)
+
+
+def ridge_faces(p: mi.Vector3f, d: mi.Vector3f, half: mi.Vector3f,
+                tol: float | mi.Float = RIDGE_TOLERANCE) -> tuple[mi.Bool, mi.UInt32, mi.UInt32, mi.Float]:
+    """The ridge of :func:`box_sdf_ray_local` at ``p`` (detached): whether the faces within
+    ``tol`` of the max include a decreasing and an increasing one along ``d``, the two blended
+    faces ``a`` (steepest decreasing) and ``b`` (steepest increasing) as indices into
+    ``(p_x - h_x, p_y - h_y, p_z - h_z, -p_x - h_x, -p_y - h_y, -p_z - h_z)``, and ``lambda_a``."""
     with dr.suspend_grad():
-        v = [dr.detach(x) for x in faces]
+        p, d, half = dr.detach(p), dr.detach(d), dr.detach(half)
+        v = [p[i] - half[i] for i in range(3)] + [-p[i] - half[i] for i in range(3)]
         m = dr.maximum(dr.maximum(dr.maximum(v[0], v[1]), dr.maximum(v[2], v[3])), dr.maximum(v[4], v[5]))
         slopes = [d[i] for i in range(3)] + [-d[i] for i in range(3)]
         ia, ib = mi.UInt32(6), mi.UInt32(6)
@@ -300,14 +318,21 @@ def box_sdf_ray_local(p: mi.Vector3f, d: mi.Vector3f, half: mi.Vector3f,
             ib, gb = dr.select(inc_j, j, ib), dr.select(inc_j, slopes[j], gb)
         ridge = (m < 0.0) & (ia < 6) & (ib < 6)
         lam = envelope_weight(dr.select(ridge, ga, -1.0), dr.select(ridge, gb, 1.0))
+    return ridge, ia, ib, lam
 
-    def face(idx):
-        out = faces[5]
-        for j in range(4, -1, -1):
-            out = dr.select(idx == j, faces[j], out)
-        return out
 
-    return dr.select(ridge, envelope_blend(f, face(ia), face(ib), lam), f)
+def ridge_local_grad(ia: mi.UInt32, ib: mi.UInt32, lam: mi.Float) -> tuple[mi.Vector3f, mi.Vector3f]:
+    """``(dB/dp, dB/dhalf)`` of the envelope at a ridge (:func:`ridge_faces`): ``lambda`` times
+    face ``a``'s plane gradient plus ``1 - lambda`` times face ``b``'s (face ``j < 3`` is
+    ``p_j - h_j``, face ``j >= 3`` is ``-p_{j-3} - h_{j-3}``), as :func:`box_sdf_ray_local`'s AD
+    gives it."""
+    gp, gh = [mi.Float(0.0)] * 3, [mi.Float(0.0)] * 3
+    for face, w in ((ia, lam), (ib, 1.0 - lam)):
+        for i in range(3):
+            on = (face == i) | (face == i + 3)
+            gp[i] = gp[i] + dr.select(on, dr.select(face == i, w, -w), 0.0)
+            gh[i] = gh[i] - dr.select(on, w, 0.0)
+    return mi.Vector3f(*gp), mi.Vector3f(*gh)
 
 
 def box_normal_local(p: mi.Vector3f, half: mi.Vector3f) -> mi.Vector3f:
@@ -547,9 +572,10 @@ class _LaneBoxGradient(dr.CustomOp):
     operations per live lane).
     """
 
-    def eval(self, half, centre, cos, sin, velocity, dynamic, value, p, time, inst, live):
+    def eval(self, half, centre, cos, sin, velocity, dynamic, value, p, time, inst, live, ridge):
         self.box = (half, centre, cos, sin, velocity, dynamic)
         self.lanes = (p, time, inst, live)
+        self.ridge = ridge
         self.width = dr.width(value)
         return mi.Float(value)
 
@@ -571,6 +597,11 @@ class _LaneBoxGradient(dr.CustomOp):
         cs, sn = g(cos), g(sin)
         pl = mi.Vector3f(cs * d.x - sn * d.z, d.y, sn * d.x + cs * d.z)
         _, a, gh = box_sdf_local_grad(pl, mi.Vector3f(*[g(h) for h in half]))
+        if self.ridge is not None:  # the envelope gradient at the ridge lanes
+            faces, lam = dr.gather(mi.UInt32, self.ridge[0], lane), dr.gather(mi.Float, self.ridge[1], lane)
+            ra, rh = ridge_local_grad(faces >> 3, faces & 7, lam)
+            on = lam >= 0.0
+            a, gh = dr.select(on, ra, a), dr.select(on, rh, gh)
         dd = mi.Vector3f(a.x * cs + a.z * sn, a.y, a.z * cs - a.x * sn)
         return ins, gh, dd, d, a, mt, vel, ts
 
@@ -637,11 +668,13 @@ class _LaneBoxGradient(dr.CustomOp):
 
 
 def lane_box_sdf(dec: DecodedBoxes, value: mi.Float, p: mi.Point3f, time: mi.Float, inst: mi.UInt32,
-                 live: mi.UInt32) -> mi.Float:
+                 live: mi.UInt32, ridge: tuple[mi.UInt32, mi.Float] | None = None) -> mi.Float:
     """``value`` (the detached box SDF of instance ``inst[i]`` at ``p[i]``, time ``time[i]``) with
-    the gradient w.r.t. ``dec`` on the lanes ``live`` (see :class:`_LaneBoxGradient`)."""
+    the gradient w.r.t. ``dec`` on the lanes ``live`` (see :class:`_LaneBoxGradient`). With
+    ``ridge = (faces, lambda)`` (per lane: ``8 a + b`` and ``lambda_a`` of :func:`ridge_faces`,
+    ``lambda < 0`` for none) those lanes get the envelope gradient instead."""
     return dr.custom(_LaneBoxGradient, dec.half, dec.centre, dec.cos, dec.sin, dec.velocity, dec.dynamic,
-                     value, p, time, inst, live)
+                     value, p, time, inst, live, ridge)
 
 
 class InstanceField:
@@ -798,8 +831,10 @@ class InstanceField:
         (:func:`box_sdf_ray_local`; same values). With ``grad_reach``, lanes outside the box
         enlarged by ``grad_reach`` (and by ``reach`` with a residual) get the detached box SDF:
         the same values, but only the lanes near their box enter the AD graph (the backward pass
-        runs over those alone). A sampler may pass the distance beyond which an SDF value can no
-        longer move its integral.
+        runs over those alone; the box part's gradient is computed in closed form,
+        :class:`_LaneBoxGradient`, ridge lanes included, which then must lie within
+        ``grad_reach`` of their box: a deepest point inside it does). A sampler may pass the
+        distance beyond which an SDF value can no longer move its integral.
         """
         if grad_reach is None:
             f = self._lane_sdfs_ad(dec, p, time, inst, weights, reach)
@@ -814,12 +849,31 @@ class InstanceField:
                 dr.eval(f, near)  # one kernel for both (compress would evaluate the mask alone)
                 live = dr.compress(near)
             if dr.width(live):
-                f = lane_box_sdf(dec, f, p, time, inst, live)
+                f = lane_box_sdf(dec, f, p, time, inst, live, None if ridge is None else
+                                 self._ridge_lanes(dec, p, time, inst, ridge))
                 if weights is not None:
                     f = f + self._lane_residuals(dec, p, time, inst, weights, reach, live)
+            return f
         if ridge is not None:
             f = f + self.ridge_correction(dec, p, time, inst, ridge)
         return f
+
+    def _ridge_lanes(self, dec: DecodedBoxes, p: mi.Point3f, time: mi.Float, inst: mi.UInt32,
+                     ridge: tuple[mi.UInt32, mi.Vector3f, float | mi.Float]) -> tuple[mi.UInt32, mi.Float]:
+        """Per lane the ridge faces ``8 a + b`` and ``lambda_a`` (:func:`ridge_faces`) at the
+        lanes ``ridge[0]`` (ray directions ``ridge[1]``, face tolerance ``ridge[2]``) that lie
+        on a ridge; ``lambda = -1`` elsewhere (detached)."""
+        lanes, dirs, tol = ridge
+        width = dr.width(p.x)
+        with dr.suspend_grad():
+            pr, tr, ir = (dr.gather(type(p), p, lanes), dr.gather(mi.Float, time, lanes),
+                          dr.gather(mi.UInt32, inst, lanes))
+            bv = self.view_lanes(dec, ir, tr)
+            on, ia, ib, lam = ridge_faces(bv.to_local(pr), bv.dir_to_local(dirs), bv.half, tol)
+            faces, lams = dr.zeros(mi.UInt32, width), dr.full(mi.Float, -1.0, width)
+            dr.scatter(faces, ia * 8 + ib, lanes)
+            dr.scatter(lams, dr.select(on, lam, -1.0), lanes)
+        return faces, lams
 
     def _lane_residuals(self, dec: DecodedBoxes, p: mi.Point3f, time: mi.Float, inst: mi.UInt32,
                         weights: mi.TensorXf, reach: float | mi.Float, live: mi.UInt32) -> mi.Float:

@@ -188,8 +188,9 @@ def lane_setup(rng, n_inst: int, n_lanes: int, residual: bool):
 @pytest.mark.parametrize("residual", [False, True])
 def test_lane_sdfs_closed_form_gradient_matches_ad(residual):
     """lane_sdfs with grad_reach (closed-form box gradient on the lanes near their box, summed
-    in runs) gives the same values and reverse- and forward-mode gradients as AD of the plain
-    per-lane SDF with the far lanes detached."""
+    in runs, the envelope gradient at ridge lanes) gives the same values and reverse- and
+    forward-mode gradients as AD of the plain per-lane SDF with the far lanes detached plus the
+    AD ridge correction."""
     rng = np.random.default_rng(13)
     field, p, t, inst = lane_setup(rng, 5, 3001, residual)
     reach, grad_reach = 0.5, 0.3
@@ -212,8 +213,17 @@ def test_lane_sdfs_closed_form_gradient_matches_ad(residual):
         dr.forward_to(f)
         return np.array(dr.detach(f)), np.array(dr.grad(f))
 
+    # ridge lanes: interior points with random ray directions; with a face tolerance of 0.5 m
+    # about half of them lie on a ridge, most between faces of different axes
+    with dr.suspend_grad():
+        box = InstanceField.view_lanes(field.decode(), inst, t)
+        interior = np.flatnonzero(np.array(box_sdf_local(box.to_local(p), box.half)) < 0.0)[::2]
+    lanes = mi.UInt32(interior.astype(np.uint32))
+    dirs = rng.normal(size=(len(interior), 3))
+    ridge = (lanes, vec(dirs / np.linalg.norm(dirs, axis=1, keepdims=True)), 0.5)
+
     def closed(dec, weights):
-        return field.lane_sdfs(dec, p, t, inst, weights, reach=reach, grad_reach=grad_reach)
+        return field.lane_sdfs(dec, p, t, inst, weights, reach=reach, ridge=ridge, grad_reach=grad_reach)
 
     def plain(dec, weights):
         # far lanes (box SDF beyond the reach, where the residual cannot bring it back) keep
@@ -223,7 +233,7 @@ def test_lane_sdfs_closed_form_gradient_matches_ad(residual):
             box = InstanceField.view_lanes(dec, inst, t)
             f_box = box_sdf_local(box.to_local(p), box.half)
             far = f_box > (max(grad_reach, reach) if residual else grad_reach)
-        return dr.select(far, f_box, f)
+        return dr.select(far, f_box, f) + field.ridge_correction(dec, p, t, inst, ridge)
 
     for mode in ("reverse", "forward"):
         rng_t = np.random.default_rng(14)
