@@ -152,6 +152,9 @@ ACCRUAL_MIN_SLOPE = 1e-4
 ACCRUAL_MAX_DEPTH = 30.0
 #: Opacity fractions of an interval at which its labels are evaluated (two-point Gauss-Legendre).
 GAUSS_QUANTILES = (0.5 - 0.5 / 3.0 ** 0.5, 0.5 + 0.5 / 3.0 ** 0.5)
+#: Stand-in SDF value of an isolated ray's other bands' instances at a band's samples (beyond
+#: any culling margin: out of the scene SDF's minimum and the softmin).
+ISOLATED_ELSEWHERE = 1e6
 #: Gap peaks: boxes on each side of a gap (by deepest point) whose least SDF is searched
 #: (see VSRDSilhouetteIntegrator._gap_peaks).
 GAP_WINDOW = 4
@@ -291,9 +294,12 @@ class SamplingConfig:
     #: box's exit, where ``B + R`` can have further local minima (a ray along a face: the
     #: residual's wiggles against a nearly constant ``B``); see :meth:`_tail_samples`.
     residual_tail: int = 12
-    #: Band samples of rays whose bands are isolated (see :meth:`VSRDSilhouetteIntegrator._isolated`;
-    #: 0: ``band_samples`` for every ray). Without the residual field only.
-    isolated_band_samples: int = 2
+    #: Rays whose bands are isolated (see :meth:`VSRDSilhouetteIntegrator._isolated`) get
+    #: ``isolated_band_samples`` band samples (>= 1; the first sits at the band's centre: the
+    #: surface entry or closest approach) instead of ``band_samples``. Without the residual field
+    #: only.
+    isolated_rays: bool = True
+    isolated_band_samples: int = 1
     ridge_gradients: bool = True
     coarse_samples: int = 100
     fine_samples: int = 100
@@ -312,6 +318,7 @@ class SamplingConfig:
             residual_scan=int(props.get("residual_scan", d.residual_scan)),
             residual_golden=int(props.get("residual_golden", d.residual_golden)),
             residual_tail=int(props.get("residual_tail", d.residual_tail)),
+            isolated_rays=bool(props.get("isolated_rays", d.isolated_rays)),
             isolated_band_samples=int(props.get("isolated_band_samples", d.isolated_band_samples)),
             ridge_gradients=bool(props.get("ridge_gradients", d.ridge_gradients)),
             coarse_samples=int(props.get("coarse_samples", d.coarse_samples)),
@@ -323,7 +330,7 @@ class SamplingConfig:
             raise ValueError(f"vsrd_silhouette: sampling must be 'adaptive' or 'dense', got {cfg.sampling!r}")
         if (cfg.band_samples < 2 or cfg.max_bands < 0 or cfg.coarse_samples < 2 or cfg.fine_samples < 1
                 or cfg.residual_scan == 1 or cfg.residual_scan < 0 or cfg.residual_golden < 0
-                or cfg.residual_tail < 0 or cfg.isolated_band_samples == 1 or cfg.isolated_band_samples < 0):
+                or cfg.residual_tail < 0 or cfg.isolated_band_samples < 1):
             raise ValueError("vsrd_silhouette: sample counts too small")
         if not (0.0 <= cfg.near < cfg.far):
             raise ValueError("vsrd_silhouette: need 0 <= near < far")
@@ -432,9 +439,18 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         # SDF (and the residual MLP) is evaluated in one batch
         with dr.suspend_grad():
             ray_lanes, ts, insts, deep = [], [], [], []
-            for rays, t, m, active, slot_inst, deepest, _ in groups:
+            for rays, t, m, active, slot_inst, deepest, _, own in groups:
                 r = dr.arange(mi.UInt32, dr.width(t)) // m
                 ray_of = dr.gather(mi.UInt32, rays, r)
+                if own is not None:  # isolated rays: each sample's own band's instance only
+                    ray_lanes.append(ray_of)
+                    ts.append(t)
+                    inst_own = mi.UInt32(0)
+                    for b, ib in enumerate(slot_inst):
+                        inst_own = dr.select(own == b, dr.gather(mi.UInt32, ib, r), inst_own)
+                    insts.append(inst_own)
+                    deep.append(dr.select(deepest == own, 1, 0))
+                    continue
                 for b, ib in enumerate(slot_inst):
                     ray_lanes.append(ray_of)
                     ts.append(t)
@@ -455,19 +471,23 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
                                      grad_reach=dr.detach(self._cull_margin()))
         flat = dr.zeros(mi.Float, n_rays * n_inst)
         start = 0
-        for rays, t, m, active, slot_inst, _, peak in groups:
+        for rays, t, m, active, slot_inst, _, peak, own in groups:
             w = dr.width(t)
             with dr.suspend_grad():
                 lane = dr.arange(mi.UInt32, w)
             # each slot's SDFs are a slice of f_all: no two lanes of any of these gathers read
             # the same entry, so their reverse (a scatter-add) needs no atomics
-            sdfs = [dr.gather(mi.Float, f_all, lane + dr.opaque(mi.UInt32, start + b * w),
-                              mode=dr.ReduceMode.NoConflicts)
-                    for b in range(len(slot_inst))]
-            start += w * len(slot_inst)
+            slices = [dr.gather(mi.Float, f_all, lane + dr.opaque(mi.UInt32, start + b * w),
+                                mode=dr.ReduceMode.NoConflicts)
+                      for b in range(1 if own is not None else len(slot_inst))]
+            start += w * len(slices)
+            # on an isolated ray every other band's box is beyond its culling margin at a
+            # sample (see _isolated): it is left out of the minimum and the softmin there
+            sdfs = slices if own is None else [dr.select(own == b, slices[0], ISOLATED_ELSEWHERE)
+                                               for b in range(len(slot_inst))]
             for lab, ib in zip(self._integrate(sdfs, m, peak if self.cfg.ridge_gradients else None), slot_inst):
                 dr.scatter_add(flat, lab, rays * n_inst + ib, active)
-            self._count(dr.width(rays), m, len(slot_inst))
+            self._count(dr.width(rays), m, len(slices))
         idx = dr.arange(mi.UInt32, n_rays) * n_inst
         return [dr.gather(mi.Float, flat, idx + k) for k in range(n_inst)]
 
@@ -796,17 +816,19 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
 
     def _isolated(self, picked: list[tuple], count: mi.UInt32) -> mi.Bool:
         """Rays whose enlarged-box intervals are pairwise disjoint (no residual field; all rays
-        when ``isolated_band_samples`` is 0 or the field is on: none).
+        when ``isolated_rays`` is off or the field is on: none).
 
         Then at every sample of a band every other instance lies beyond its culling margin, so
         its softmin share is below ``exp(-reach)`` and the band's labels are its opacity; and
         the opacity telescopes exactly over each monotone stretch of the (convex) box SDF, whose
         ends the band already samples: the enlarged box's entry, the surface entry or closest
         approach, the deepest point, and the gap peaks. Such a band needs no more samples in
-        between; ``isolated_band_samples`` (one per half) keep the layout. Slots are sorted by
+        between (``isolated_band_samples``, default 1: the enlarged box's entry, the surface
+        entry or closest approach, the deepest point or the enlarged box's exit, and the peak
+        slot, a copy of the latter, per band). Slots are sorted by
         closest approach, which lies in each interval, so checking consecutive slots suffices.
         """
-        if self.cfg.isolated_band_samples == 0 or self.field.residual_reach > 0:
+        if not self.cfg.isolated_rays or self.field.residual_reach > 0:
             return mi.Bool(False)
         isolated = mi.Bool(True)
         for b in range(len(picked) - 1):
@@ -966,8 +988,8 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
 
     @staticmethod
     def _halves(kk: int) -> tuple[int, int]:
-        """Band samples before and after a band's centre."""
-        k1 = kk // 2
+        """Band samples up to a band's centre (the last of them at it) and after it."""
+        k1 = max(kk // 2, 1)
         return k1, kk - k1
 
     def _tail_samples(self) -> tuple[int, int]:
@@ -1034,7 +1056,7 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
             return
         # (isolated rays?, K): rays of isolated bands get their own groups with fewer samples
         layouts = [(False, self.cfg.band_samples)]
-        if self.cfg.isolated_band_samples and self.field.residual_reach == 0:
+        if self.cfg.isolated_rays and self.field.residual_reach == 0:
             layouts.append((True, self.cfg.isolated_band_samples))
         for g, (iso, kk) in ((g, lay) for g in range(1, len(slots) + 1) for lay in layouts):
             j_ex = kk + kp + 1  # index of the extra sample: entry, K band samples, first tail, extra
@@ -1067,10 +1089,10 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
                 t = mi.Float(0.0)
                 for b in range(g):
                     e0, lo, mid, hi, ex, pk = sl[b][:6]
-                    ja = dr.minimum(dr.maximum(j, 1), k1)
-                    jb = dr.minimum(dr.maximum(j, k1 + 1), kk) - k1
-                    tb = dr.select(j <= k1, self._sub_sample(lo, mid, ja, k1, True),
-                                   self._sub_sample(mid, hi, jb, k2))
+                    tb = self._sub_sample(lo, mid, dr.minimum(dr.maximum(j, 1), k1), k1, True)
+                    if k2:
+                        jb = dr.minimum(dr.maximum(j, k1 + 1), kk) - k1
+                        tb = dr.select(j <= k1, tb, self._sub_sample(mid, hi, jb, k2))
                     if kp:  # strictly inside (hi, ex): the extra sample follows
                         jp = dr.minimum(dr.maximum(j, kk + 1), kk + kp) - kk
                         tb = dr.select((j > kk) & (j < j_ex), self._sub_sample(hi, ex, jp, kp + 1), tb)
@@ -1090,8 +1112,10 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
                     def before(x):
                         return (x < t) | (incl & (x == t))
 
-                    cnt = (self._count_before(lo, mid, k1, before, True) + self._count_before(mid, hi, k2, before)
+                    cnt = (self._count_before(lo, mid, k1, before, True)
                            + dr.select(before(e0), 1, 0) + dr.select(before(ex), 1, 0))
+                    if k2:
+                        cnt += self._count_before(mid, hi, k2, before)
                     if kp:
                         cnt += self._count_before(hi, ex, kp + 1, before, n=kp)
                     if kq:
@@ -1121,5 +1145,9 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
                 dr.scatter(peak_b, mi.UInt32(pb), r * m + rank)
                 rays = dr.gather(mi.UInt32, ray_idx, sub)
                 inst = [dr.gather(mi.UInt32, slot_inst[b], sub) for b in range(g)]
+                own = None
+                if iso:  # each sample's band
+                    own = dr.zeros(mi.UInt32, na * m)
+                    dr.scatter(own, band, r * m + rank)
             # yield outside ``suspend_grad``: the consumer differentiates the integral
-            yield rays, ts, m, active, inst, deepest, (peak_a, peak_b, peak_lam)
+            yield rays, ts, m, active, inst, deepest, (peak_a, peak_b, peak_lam), own
