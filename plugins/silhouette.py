@@ -719,17 +719,22 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
                 hit.append((b0 <= b1) & (b1 > cfg.near) & (b0 < cfg.far))
                 tin.append(dr.maximum(b0, cfg.near))
                 tout.append(dr.minimum(b1, cfg.far))
-            any_act = act[0]
+            any_act, met = act[0], dr.select(act[0], 1, 0)
             for a in act[1:]:
                 # not ``|=``: Dr.Jit's in-place operators update the array object itself, which
                 # is act[0] (instance 0 then met every ray that met any box)
                 any_act = any_act | a
+                met = met + dr.select(a, 1, 0)
             # one kernel for every per-instance ray quantity (a gather from an unevaluated
             # array evaluates it alone: 10 small kernels per instance)
-            dr.eval(any_act, views, entry, exit_, act, hit, tin, tout)
+            dr.eval(any_act, met, views, entry, exit_, act, hit, tin, tout)
             ray_idx = dr.compress(any_act)
             if dr.width(ray_idx) == 0:
                 return ray_idx, None, [], [], [], None
+            # slots (and gaps between them) only up to the most boxes a ray meets: their
+            # searches run for every ray. Kernels are shaped by this count (at most one set per
+            # count, compiled once each)
+            most_met = int(dr.max(met)[0])
 
             def sel(x, ty=mi.Float):
                 return dr.gather(ty, x, ray_idx)
@@ -755,7 +760,7 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
             keys = [dr.select(act[k], tstar[k], big) for k in range(n_inst)]
             count = mi.UInt32(0)
             picked, slot_inst = [], []
-            n_slots = n_inst if cfg.max_bands <= 0 else min(cfg.max_bands, n_inst)
+            n_slots = min(most_met, n_inst if cfg.max_bands <= 0 else cfg.max_bands)
             for _ in range(n_slots):
                 best = mi.Float(big)
                 kb = mi.UInt32(n_inst)
