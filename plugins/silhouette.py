@@ -28,6 +28,11 @@ r"""Instance-aware NeuS silhouette integrator (``vsrd_silhouette``).
      along the ray, golden-section steps refining it (0 scan points: use the box's least
      ``B``), and tail samples per band covering the rest of the box's chord, where ``B + R``
      can dip again (0: none). (Default: 4, 0, 12)
+ * - isolated_rays, isolated_band_samples
+   - |bool|, |int|
+   - Adaptive sampling without the residual field: rays whose enlarged boxes are disjoint along
+     them get ``isolated_band_samples`` band samples per box instead of ``K``, and evaluate only
+     that box at them (see below). (Default: true, 1)
  * - coarse_samples, fine_samples
    - |int|
    - Dense sampling: stratified coarse and importance fine sample counts. (Default: 100, 100)
@@ -98,8 +103,13 @@ maxima and descents of ``f``, which is what the two sampling strategies target:
   the band's minimum sample there, and ``residual_tail`` more samples per band cover the rest of
   the chord (half between a reach past a hit's entry and the minimum, half from the band's end
   to the enlarged box's exit), where ``B + R`` can dip again. Rays that meet no enlarged box
-  return background at zero cost (they are compacted away). Only sample positions are detached;
-  SDF values at samples carry gradients.
+  return background at zero cost (they are compacted away). A ray whose enlarged-box intervals
+  are disjoint (isolated, :meth:`~VSRDSilhouetteIntegrator._isolated`) has at each band sample
+  every other box beyond its culling margin, so its labels are the band's opacity, which
+  telescopes exactly between the entry, centre and deepest-point samples: it gets
+  ``isolated_band_samples`` band samples and only the band's own box is evaluated at them (the
+  others stand in as :data:`ISOLATED_ELSEWHERE`). Only sample positions are detached; SDF values
+  at samples carry gradients.
 
 Gradients at a box's interior ridges
 ------------------------------------
