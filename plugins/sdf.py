@@ -222,11 +222,12 @@ def box_sdf_local_grad(p: mi.Vector3f, half: mi.Vector3f) -> tuple[mi.Float, mi.
     """:func:`box_sdf_local` with its derivatives ``(B, dB/dp, dB/dhalf)`` in closed form (no AD).
 
     ``dB/dq_i = max(q_i, 0) / |max(q, 0)|`` outside (0 where the squared norm is at most
-    ``dr.epsilon``, as Dr.Jit's safe square root has it), plus 1 for the largest ``q_i`` where ``max_i q_i <= 0``; ``dq_i/dp_i = sign(p_i)``
-    and ``dq_i/dhalf_i = -1``. At ties it follows Dr.Jit's AD of :func:`box_sdf_local` exactly
-    (``abs'(0) = 0``; ``maximum(a, b)`` sends the gradient to ``a`` only where ``a > b``,
-    ``minimum(a, b)`` to ``a`` where ``a <= b``), so the two can be mixed lane by lane (the
-    ridge correction subtracts the AD gradient of the same point)."""
+    ``dr.epsilon``, as Dr.Jit's safe square root has it), plus 1 for the largest ``q_i`` where
+    ``max_i q_i <= 0``; ``dq_i/dp_i = sign(p_i)`` and ``dq_i/dhalf_i = -1``. At ties it follows
+    Dr.Jit's AD of :func:`box_sdf_local` exactly (``abs'(0) = 0``; ``maximum(a, b)`` sends the
+    gradient to ``a`` only where ``a > b``, ``minimum(a, b)`` to ``a`` where ``a <= b``), so the
+    adaptive sampler's lanes and the AD paths (dense, ``integrate_at``) differentiate the same
+    function the same way, on box faces and edges too."""
     q = dr.abs(p) - half
     qo = dr.maximum(q, 0.0)
     sq = dr.squared_norm(qo)
@@ -564,8 +565,10 @@ class _LaneBoxGradient(dr.CustomOp):
 
     Inputs: the decoded boxes (``half``, ``centre``, ``cos``, ``sin``, ``velocity``, ``dynamic``:
     width-N arrays), then per lane ``value`` (the box SDF), point ``p``, ray time ``time`` and
-    instance ``inst``, and ``live`` (lane indices). The same derivative as AD of
-    ``box_sdf_local(view_lanes(...).to_local(p), half)``, tie for tie, but the backward pass is
+    instance ``inst``, ``live`` (lane indices), and ``ridge`` (``None`` or per lane the ridge
+    faces and envelope weight, see :func:`lane_box_sdf`). The same derivative as AD of
+    ``box_sdf_local(view_lanes(...).to_local(p), half)`` (of :func:`box_sdf_ray_local` at ridge
+    lanes), tie for tie, but the backward pass is
     one kernel over the live lanes that recomputes the box-local point and scatter-adds its
     partials per instance, instead of AD's stored intermediates and per-parameter reductions
     (in the adaptive sampler's step it replaced a forward and a backward kernel of 450 and 320
