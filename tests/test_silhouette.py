@@ -286,17 +286,21 @@ def test_adaptive_samples_are_merged_in_order(residual):
 def test_isolated_rays_are_those_whose_boxes_do_not_interact():
     """A ray is isolated when the enlarged boxes it meets are disjoint along it: two boxes 10 m
     apart on one line of sight are, two boxes 0.2 m apart side by side are not (their culling
-    margins overlap); with the residual field no ray is."""
-    centres = np.array([[0.0, 0.0, 10.0], [0.0, 0.0, 20.0], [2.1, 0.0, 20.0]])
-    scene = {"centres": centres, "sizes": np.array([[1.9, 1.5, 4.0]] * 3), "yaws": np.zeros(3)}
+    margins overlap); with the residual field no ray is. Band slots go up to the most boxes a
+    ray meets."""
+    # two more boxes far to the side that neither ray meets: no slots for them
+    centres = np.array([[0.0, 0.0, 10.0], [0.0, 0.0, 20.0], [2.1, 0.0, 20.0], [30.0, 0.0, 20.0],
+                        [-30.0, 0.0, 20.0]])
+    scene = {"centres": centres, "sizes": np.array([[1.9, 1.5, 4.0]] * 5), "yaws": np.zeros(5)}
     # one ray through the first two boxes' centres, one grazing between the side-by-side pair
     d = np.array([[0.0, 0.0, 1.0], [1.05 / 20.0, 0.0, 1.0]])
     rays = to_mi(np.zeros((2, 3)), d / np.linalg.norm(d, axis=1, keepdims=True), np.zeros(2))
     for residual, expected in ((False, [True, False]), (True, [False, False])):
         it = make(scene, sharpness=10.0, temperature=0.1, residual=residual)
         with dr.suspend_grad():
-            ray_idx, count, *_, isolated = it._adaptive_bands(it.field.decode(), *rays)
+            ray_idx, count, slots, *_, isolated = it._adaptive_bands(it.field.decode(), *rays)
         assert list(np.array(count)) == [2, 3]
+        assert len(slots) == 3  # slots up to the most boxes a ray meets, not one per instance
         assert list(np.broadcast_to(np.array(isolated), 2)) == expected
 
 
