@@ -497,7 +497,8 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
                                                for b in range(len(slot_inst))]
             for lab, ib in zip(self._integrate(sdfs, m, peak if self.cfg.ridge_gradients else None), slot_inst):
                 dr.scatter_add(flat, lab, rays * n_inst + ib, active)
-            self._count(dr.width(rays), m, len(slices))
+            # a padded single-ray group (see _adaptive_groups) counts its one real ray
+            self._count(1 if dr.width(active) > 1 else dr.width(rays), m, len(slices))
         idx = dr.arange(mi.UInt32, n_rays) * n_inst
         return [dr.gather(mi.Float, flat, idx + k) for k in range(n_inst)]
 
