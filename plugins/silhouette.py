@@ -102,7 +102,8 @@ maxima and descents of ``f``, which is what the two sampling strategies target:
   ``B + R`` per band (one batched residual evaluation; golden-section steps can refine it) moves
   the band's minimum sample there, and ``residual_tail`` more samples per band cover the rest of
   the chord (half between a reach past a hit's entry and the minimum, half from the band's end
-  to the enlarged box's exit), where ``B + R`` can dip again. Rays that meet no enlarged box
+  to the enlarged box's exit; where the band already ends at its minimum, both halves share the
+  rest of the chord), where ``B + R`` can dip again. Rays that meet no enlarged box
   return background at zero cost (they are compacted away). A ray whose enlarged-box intervals
   are disjoint (isolated, :meth:`~VSRDSilhouetteIntegrator._isolated`) has at each band sample
   every other box beyond its culling margin, so its labels are the band's opacity, which
@@ -702,12 +703,12 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
 
         Returns ``(ray_idx, count, slots, slot_inst, slot_hit)``: indices of rays meeting at least
         one enlarged box, their number of bands, per slot ``(entry, lo, mid, hi, extra, peak,
-        lambda, a, b, tail_end)`` arrays (the gap peak after the band with its crossing slots and
-        envelope weight, see :meth:`_gap_peaks`; the end of the second tail, see
-        :meth:`_tail_samples`; slots sorted by the box's deepest point / closest approach along
-        the ray, which :meth:`_gap_peaks` needs; a ray's valid slots come first), per slot the band's instance
-        (``num_instances`` for an empty slot) and whether the ray enters that box (then ``extra``
-        is the deepest point of the box along the ray).
+        lambda, a, b, tail_end, deepest)`` arrays (the gap peak after the band with its crossing
+        slots and envelope weight, see :meth:`_gap_peaks`; the end of the second tail, see
+        :meth:`_tail_samples`; the sample at a hit's minimum, ``extra`` unless the band already
+        ends there; slots sorted by the box's deepest point / closest approach along the ray,
+        which :meth:`_gap_peaks` needs; a ray's valid slots come first), per slot the band's
+        instance (``num_instances`` for an empty slot) and whether the ray enters that box.
         """
         cfg = self.cfg
         n_inst = self.field.n
@@ -798,7 +799,7 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
             if self._residual_search():
                 fmin = self._residual_minima(dec, slot_views, slot_inst, count, picked)
             use_tail = self._tail_samples()[1] > 0
-            slots, slot_hit, slot_ts, tails = [], [], [], []
+            slots, slot_hit, slot_ts, tails, deepests = [], [], [], [], []
             for b, (valid, e0, e1, ts, c, b1, hb) in enumerate(picked):
                 if fmin is not None:
                     c = dr.select(hb, c, fmin[b])
@@ -818,14 +819,25 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
                 far_end = dr.minimum(c + w, e1) if use_tail else e1
                 hi = dr.maximum(dr.select(hb, dr.minimum(c + w, dr.maximum(ts_band, c)), far_end), mid)
                 extra = dr.maximum(dr.select(hb, ts_band, far_end), hi)
-                slots.append(tuple(dr.select(valid, v, cfg.far) for v in (e0, lo, mid, hi, extra)))
                 tail = dr.maximum(e1, extra) if use_tail else extra
+                if use_tail:
+                    # where the band already ends at its minimum (a miss: at its centre; a hit
+                    # whose least B + R lies within a reach of its entry: at its last sample),
+                    # the first tail would sit on one point: the extra sample then splits the
+                    # rest of the chord between the two tails instead (and is no deepest point)
+                    split = extra <= hi
+                    deepest_t = dr.select(split, hi, extra)
+                    extra = dr.select(split, dr.maximum(0.5 * (hi + tail), hi), extra)
+                else:
+                    deepest_t = extra
+                slots.append(tuple(dr.select(valid, v, cfg.far) for v in (e0, lo, mid, hi, extra)))
+                deepests.append(dr.select(valid, deepest_t, cfg.far))
                 tails.append(dr.select(valid, tail, cfg.far))
                 slot_hit.append(valid & hb)
                 slot_ts.append(dr.select(valid, ts, cfg.far))
             peaks = self._gap_peaks(slot_views, slot_ts, count)
-            slots = [sl + (dr.select(ok, pk, sl[4]), dr.select(ok, lam, -1.0), pa, pb, tail)
-                     for sl, (pk, ok, lam, pa, pb), tail in zip(slots, peaks, tails)]
+            slots = [sl + (dr.select(ok, pk, sl[4]), dr.select(ok, lam, -1.0), pa, pb, tail, deep)
+                     for sl, (pk, ok, lam, pa, pb), tail, deep in zip(slots, peaks, tails, deepests)]
             isolated = self._isolated(picked, count)
             dr.eval(count, slots, slot_inst, slot_hit, isolated)
         return ray_idx, count, slots, slot_inst, slot_hit, isolated
@@ -1014,7 +1026,12 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         that runs close to a face can have several local minima, each a descent whose opacity
         telescopes separately; the band's own samples cover a reach on either side of the
         least one only. The first tail fills a hit band from a reach past the surface entry to
-        the minimum, the second from the band's end to the enlarged box's exit.
+        the minimum, the second from the band's end to the enlarged box's exit. A band that
+        already ends at its minimum (a miss; a hit whose minimum is within a reach of its
+        entry) has no stretch for the first tail: its extra sample then sits halfway from the
+        band's end to the exit and the two tails share that stretch (they stacked on one point
+        before: 32 random 2-3-box scenes, labels mean max 0.0090 -> 0.0075, mean p99 0.0053 ->
+        0.0044, same sample count).
         """
         kt = self.cfg.residual_tail if self._residual_search() else 0
         return kt // 2, kt - kt // 2
@@ -1146,7 +1163,7 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
                 at_deepest = mi.Bool(False)
                 for b in range(g):
                     hb = dr.gather(mi.Bool, slot_hit[b], rows)
-                    at_deepest = dr.select(band == b, hb & (t == sl[b][4]), at_deepest)
+                    at_deepest = dr.select(band == b, hb & (t == sl[b][10]), at_deepest)
                 deepest = dr.zeros(mi.UInt32, na * m)
                 dr.scatter(deepest, dr.select(at_deepest, band, g), r * m + rank)
                 # gap peaks: the two crossing bands and the envelope weight of the first
