@@ -75,6 +75,7 @@ GRID = (
     BenchSetting("rays-2000", {"rays_per_step": 2000}),
     BenchSetting("K-8", {"band_samples": 8}),
     BenchSetting("K-32", {"band_samples": 32}),
+    BenchSetting("no-isolated", {"isolated_rays": False}),
     BenchSetting("steps-300", {"steps": 300, "warmup_steps": 100}),
     BenchSetting("steps-1200", {"steps": 1200, "warmup_steps": 400}),
     BenchSetting("no-early-stop", {"early_stop": {"enabled": False}}),

@@ -109,6 +109,9 @@ class AutolabelConfig:
     rays_per_step: int = 1000
     sampling: str = "adaptive"
     band_samples: int = 16
+    #: Adaptive sampling: rays whose enlarged boxes are disjoint along them get one band sample per
+    #: box instead of ``band_samples`` (exact for the box SDF; see the ``vsrd_silhouette`` plugin).
+    isolated_rays: bool = True
     #: Optimise the residual distance field after the warm-up (paper §III-C). Off by default:
     #: at the paper's loss weights the silhouette term is ~1/200 of the pixel-scale projection
     #: term, so boxes come out the same to 0.001 mean 3D IoU with and without the field, at 5-6x
