@@ -286,7 +286,7 @@ def box_sdf_ray_local(p: mi.Vector3f, d: mi.Vector3f, half: mi.Vector3f,
     elsewhere exactly :func:`box_sdf_local`. ``d`` need not be normalised (``lambda`` is scale-free).
     """
     f = box_sdf_local(p, half)
-    faces = [p[i] - half[i] for i in range(3)] + [-p[i] - half[i] for i in range(3)]
+    faces = face_planes(p, half)
     ridge, ia, ib, lam = ridge_faces(p, d, half, tol)
 
     def face(idx):
@@ -298,15 +298,21 @@ def box_sdf_ray_local(p: mi.Vector3f, d: mi.Vector3f, half: mi.Vector3f,
     return dr.select(ridge, envelope_blend(f, face(ia), face(ib), lam), f)
 
 
+def face_planes(p: mi.Vector3f, half: mi.Vector3f) -> list[mi.Float]:
+    """The six face planes of a box at box-local ``p``: ``p_j - h_j`` (face ``j < 3``) and
+    ``-p_j - h_j`` (face ``j + 3``); inside the box, :func:`box_sdf_local` is their max."""
+    return [p[i] - half[i] for i in range(3)] + [-p[i] - half[i] for i in range(3)]
+
+
 def ridge_faces(p: mi.Vector3f, d: mi.Vector3f, half: mi.Vector3f,
                 tol: float | mi.Float = RIDGE_TOLERANCE) -> tuple[mi.Bool, mi.UInt32, mi.UInt32, mi.Float]:
     """The ridge of :func:`box_sdf_ray_local` at ``p`` (detached): whether the faces within
     ``tol`` of the max include a decreasing and an increasing one along ``d``, the two blended
     faces ``a`` (steepest decreasing) and ``b`` (steepest increasing) as indices into
-    ``(p_x - h_x, p_y - h_y, p_z - h_z, -p_x - h_x, -p_y - h_y, -p_z - h_z)``, and ``lambda_a``."""
+    :func:`face_planes`, and ``lambda_a``."""
     with dr.suspend_grad():
         p, d, half = dr.detach(p), dr.detach(d), dr.detach(half)
-        v = [p[i] - half[i] for i in range(3)] + [-p[i] - half[i] for i in range(3)]
+        v = face_planes(p, half)
         m = dr.maximum(dr.maximum(dr.maximum(v[0], v[1]), dr.maximum(v[2], v[3])), dr.maximum(v[4], v[5]))
         slopes = [d[i] for i in range(3)] + [-d[i] for i in range(3)]
         ia, ib = mi.UInt32(6), mi.UInt32(6)
@@ -324,9 +330,8 @@ def ridge_faces(p: mi.Vector3f, d: mi.Vector3f, half: mi.Vector3f,
 
 def ridge_local_grad(ia: mi.UInt32, ib: mi.UInt32, lam: mi.Float) -> tuple[mi.Vector3f, mi.Vector3f]:
     """``(dB/dp, dB/dhalf)`` of the envelope at a ridge (:func:`ridge_faces`): ``lambda`` times
-    face ``a``'s plane gradient plus ``1 - lambda`` times face ``b``'s (face ``j < 3`` is
-    ``p_j - h_j``, face ``j >= 3`` is ``-p_{j-3} - h_{j-3}``), as :func:`box_sdf_ray_local`'s AD
-    gives it."""
+    face ``a``'s plane gradient plus ``1 - lambda`` times face ``b``'s (:func:`face_planes`), as
+    :func:`box_sdf_ray_local`'s AD gives it."""
     gp, gh = [mi.Float(0.0)] * 3, [mi.Float(0.0)] * 3
     for face, w in ((ia, lam), (ib, 1.0 - lam)):
         for i in range(3):
@@ -421,16 +426,15 @@ def _layer_norm_features(x: mi.TensorXf, eps: float = 1e-5) -> mi.TensorXf:
     return xc / dr.sqrt(var + eps)
 
 
-def concat(arrays: Sequence, width: int | None = None, stride: int | None = None):
+def concat(arrays: Sequence, width: int | None = None):
     """Concatenate Float (or UInt32) arrays (differentiably) without baking sizes into kernels.
 
     ``dr.concat`` compiles its offsets into the kernel, so concatenating arrays whose widths change
-    every call recompiles every call; here the offsets are opaque. With ``stride``, array ``i``
-    starts at ``i * stride`` (zero padding between), and the result has ``width`` lanes.
+    every call recompiles every call; here the offsets are opaque. With ``width`` the result has
+    that many lanes (zero padding after the arrays).
     """
     widths = [dr.width(a) for a in arrays]
-    starts = ([i * stride for i in range(len(arrays))] if stride is not None
-              else np.concatenate([[0], np.cumsum(widths)[:-1]]).astype(int).tolist())
+    starts = np.concatenate([[0], np.cumsum(widths)[:-1]]).astype(int).tolist()
     total = width if width is not None else int(starts[-1] + widths[-1])
     out = dr.zeros(type(arrays[0]), total)
     for a, w, s0 in zip(arrays, widths, starts):
@@ -612,7 +616,8 @@ class _LaneBoxGradient(dr.CustomOp):
         """Instance and the 12 parameter-gradient terms (half, centre, cos, sin, velocity,
         dynamic) of the live lanes ``live[at]`` (zero where not ``valid``)."""
         ins, gh, dd, d, a, mt, vel, ts = self._partials(at)
-        go = dr.select(valid, dr.gather(mi.Float, self.grad_out(), dr.gather(mi.UInt32, self.lanes[3], at)), 0.0)
+        lane = dr.gather(mi.UInt32, self.lanes[3], at)
+        go = dr.select(valid, dr.gather(mi.Float, self.grad_out(), lane), 0.0)
         gdd = go * dd
         return ins, ([go * gh[j] for j in range(3)] + [-gdd[j] for j in range(3)]
                      + [go * (a.x * d.x + a.z * d.z), go * (a.z * d.x - a.x * d.z)]

@@ -701,14 +701,15 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
     def _adaptive_bands(self, dec, o, d, time):
         """Detached per-ray band search.
 
-        Returns ``(ray_idx, count, slots, slot_inst, slot_hit)``: indices of rays meeting at least
+        Returns ``(ray_idx, count, slots, slot_inst, slot_hit, isolated)``: indices of rays meeting at least
         one enlarged box, their number of bands, per slot ``(entry, lo, mid, hi, extra, peak,
         lambda, a, b, tail_end, deepest)`` arrays (the gap peak after the band with its crossing
         slots and envelope weight, see :meth:`_gap_peaks`; the end of the second tail, see
         :meth:`_tail_samples`; the sample at a hit's minimum, ``extra`` unless the band already
         ends there; slots sorted by the box's deepest point / closest approach along the ray,
         which :meth:`_gap_peaks` needs; a ray's valid slots come first), per slot the band's
-        instance (``num_instances`` for an empty slot) and whether the ray enters that box.
+        instance (``num_instances`` for an empty slot) and whether the ray enters that box, and
+        per ray whether it is isolated (:meth:`_isolated`).
         """
         cfg = self.cfg
         n_inst = self.field.n
@@ -819,8 +820,9 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
                 far_end = dr.minimum(c + w, e1) if use_tail else e1
                 hi = dr.maximum(dr.select(hb, dr.minimum(c + w, dr.maximum(ts_band, c)), far_end), mid)
                 extra = dr.maximum(dr.select(hb, ts_band, far_end), hi)
-                tail = dr.maximum(e1, extra) if use_tail else extra
+                tail, deepest_t = extra, extra
                 if use_tail:
+                    tail = dr.maximum(e1, extra)
                     # where the band already ends at its minimum (a miss: at its centre; a hit
                     # whose least B + R lies within a reach of its entry: at its last sample),
                     # the first tail would sit on one point: the extra sample then splits the
@@ -828,8 +830,6 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
                     split = extra <= hi
                     deepest_t = dr.select(split, hi, extra)
                     extra = dr.select(split, dr.maximum(0.5 * (hi + tail), hi), extra)
-                else:
-                    deepest_t = extra
                 slots.append(tuple(dr.select(valid, v, cfg.far) for v in (e0, lo, mid, hi, extra)))
                 deepests.append(dr.select(valid, deepest_t, cfg.far))
                 tails.append(dr.select(valid, tail, cfg.far))
@@ -856,13 +856,18 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         slot, a copy of the latter, per band). Slots are sorted by
         closest approach, which lies in each interval, so checking consecutive slots suffices.
         """
-        if not self.cfg.isolated_rays or self.field.residual_reach > 0:
+        if not self._isolates():
             return mi.Bool(False)
         isolated = mi.Bool(True)
         for b in range(len(picked) - 1):
             exit_b, entry_next = picked[b][2], picked[b + 1][1]
             isolated &= (count <= b + 1) | (exit_b < entry_next)
         return isolated
+
+    def _isolates(self) -> bool:
+        """Whether isolated rays get their own layout: ``isolated_rays`` is on and the residual
+        field is off (``B + R`` need not be convex along a ray)."""
+        return self.cfg.isolated_rays and self.field.residual_reach == 0
 
     def _gap_peaks(self, slot_views, slot_ts, count) -> list[tuple]:
         """Per slot ``b`` (slots sorted by deepest point): the maximum of the scene SDF (the min
@@ -1069,9 +1074,10 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         return first_after - 1
 
     def _adaptive_groups(self, dec, o, d, time):
-        """Sample positions for the adaptive strategy, one group per band count.
+        """Sample positions for the adaptive strategy, one group per band count and layout
+        (isolated rays, :meth:`_isolated`, get ``isolated_band_samples`` instead of ``K``).
 
-        Yields ``(ray_idx, t, m, active, inst, deepest, peak)``: rays with exactly ``g`` bands get
+        Yields ``(ray_idx, t, m, active, inst, deepest, peak, own)``: rays with exactly ``g`` bands get
         ``m = g (K + 3 + T)`` samples (entry, ``K`` band samples, the first tail, closest approach /
         exit, the second tail, and the scene SDF's peak before the next band, per band; ``T`` tail
         samples only with the residual search, :meth:`_tail_samples`), merged in order by rank: a
@@ -1081,7 +1087,7 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         each ray (the only instances evaluated at its samples); ``deepest`` is, per sample, the band
         whose box's deepest point along the ray this sample is (``g`` for none); ``peak`` per sample
         the two bands whose boxes cross there and the envelope weight of the first if it is a gap
-        peak (else ``-1``).
+        peak (else ``-1``); ``own`` per sample its band in an isolated group (``None`` otherwise).
         """
         kp, kq = self._tail_samples()
         ray_idx, count, slots, slot_inst, slot_hit, isolated = self._adaptive_bands(dec, o, d, time)
@@ -1089,7 +1095,7 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
             return
         # (isolated rays?, K): rays of isolated bands get their own groups with fewer samples
         layouts = [(False, self.cfg.band_samples)]
-        if self.cfg.isolated_rays and self.field.residual_reach == 0:
+        if self._isolates():
             layouts.append((True, self.cfg.isolated_band_samples))
         for g, (iso, kk) in ((g, lay) for g in range(1, len(slots) + 1) for lay in layouts):
             j_ex = kk + kp + 1  # index of the extra sample: entry, K band samples, first tail, extra
