@@ -8,6 +8,7 @@ few cheap steps, with spies on the residual field, the Adam optimisers and their
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 from dataclasses import dataclass
@@ -273,6 +274,51 @@ def test_init_loss_is_the_l1_sum_per_box():
     assert got == pytest.approx((0.1 * 1.75 + 20.0 * (2.125 + 0.2)) / 2, abs=1e-3)
 
 
+def test_shape_prior_is_size_l1_plus_yaw_sin_squared_per_box():
+    sizes = np.array([[1.9, 1.5, 4.3], [1.7, 1.4, 3.9]])
+    field = field_of(np.array([[0.5, 0.2, 10.0], [-3.0, 0.4, 16.0]]), sizes, np.array([0.3, -1.0]))
+    dec = field.decode()
+    b = field.numpy_boxes()
+    size_init = b["sizes"] + np.array([[0.5, -0.25, 1.0], [0.0, 0.125, -0.5]])
+    yaw_init = b["yaws"] + np.array([np.pi / 6, np.pi])  # 30 degrees; reversed (free)
+    got = values(losses.shape_prior_loss(dec, size_init, yaw_init, 2.0, 3.0))[0]
+    # by hand: size L1 1.75 + 0.625, sin^2(30 deg) = 0.25, sin^2(180 deg) = 0
+    assert got == pytest.approx((2.0 * (1.75 + 0.625) + 3.0 * 0.25) / 2, abs=1e-4)
+    assert values(losses.shape_prior_loss(dec, size_init, yaw_init, 0.0, 3.0))[0] == pytest.approx(0.75 / 2, abs=1e-5)
+    assert values(losses.shape_prior_loss(dec, size_init, yaw_init, 2.0, 0.0))[0] == pytest.approx(2.375, abs=1e-4)
+    assert values(losses.shape_prior_loss(dec, b["sizes"], b["yaws"], 2.0, 3.0))[0] == pytest.approx(0.0, abs=1e-6)
+
+
+def test_shape_prior_gradients_match_finite_differences():
+    field = field_of(np.array([[0.5, 0.2, 10.0], [-3.0, 0.4, 16.0]]), np.array([[1.9, 1.5, 4.3], [1.7, 1.4, 3.9]]),
+                     np.array([0.3, -1.0]))
+    b = field.numpy_boxes()
+    size_init = b["sizes"] + np.array([[0.3, -0.2, 0.5], [-0.1, 0.15, -0.4]])  # no coordinate at its kink
+    yaw_init = b["yaws"] + np.array([0.4, -2.5])
+    keys = ("box_dims", "box_yaw")
+    base = {k: np.array(field.params[k], dtype=np.float64) for k in keys}
+    for k in keys:
+        dr.enable_grad(field.params[k])
+    dr.backward(losses.shape_prior_loss(field.decode(), size_init, yaw_init, 2.0, 3.0))
+    ad = {k: values(dr.grad(field.params[k])) for k in keys}
+
+    def loss_at(key, i, delta) -> float:
+        raw = base[key].copy()
+        raw[i] += delta
+        field.params[key] = to_float(raw)
+        try:
+            with dr.suspend_grad():
+                return float(values(losses.shape_prior_loss(field.decode(), size_init, yaw_init, 2.0, 3.0))[0])
+        finally:
+            field.params[key] = to_float(base[key])
+
+    for key in keys:
+        for i in range(len(base[key])):
+            fd = (loss_at(key, i, 1e-3) - loss_at(key, i, -1e-3)) / 2e-3
+            assert ad[key][i] == pytest.approx(fd, rel=1e-2, abs=1e-3), (key, i, ad[key][i], fd)
+    assert min(abs(v).max() for v in ad.values()) > 0.1  # both size and yaw pull
+
+
 def eikonal_points(rng, n: int, count: int) -> np.ndarray:
     """Box-local points (units of half-extents) clear of edges and of the inner medial planes:
     0.9 (inside) or 1.3 (outside) along one axis, |other coordinates| <= 0.4."""
@@ -501,6 +547,19 @@ def test_no_residual_never_evaluated(static_run):
     assert static_run.residual_calls == [0] * static_run.optimiser.cfg.steps
     assert not any("rdf_" in k for keys in static_run.adam_keys for k in keys)
     assert static_run.result.loss_history["eikonal"] == [0.0] * static_run.result.steps
+
+
+def test_shape_prior_enters_the_init_term_with_the_initial_boxes(scene):
+    """Start at the ground truth; the initialisation is 0.5 m longer and turned by 30 degrees:
+    at step 0 the init term is the prior alone, ``2 * 0.5 + 2 * sin^2(30 deg) = 1.5`` per box."""
+    obs, gt = scene
+    init = [Box3D(b.centre, b.size + np.array([0.0, 0.0, 0.5]), b.yaw + math.pi / 6, b.velocity, b.dynamic,
+                  b.instance_id) for b in gt]
+    for w, expected in ((2.0, 1.5), (0.0, 0.0)):
+        cfg = quick(residual=False, steps=1)
+        cfg = cfg.replace(weights=dataclasses.replace(cfg.weights, init_size=w, init_yaw=w))
+        result = BoxOptimiser(obs, gt, cfg, init_boxes=init).run()
+        assert result.loss_history["init"][0] == pytest.approx(expected, abs=2e-3), w
 
 
 def test_no_dynamic_instance_no_velocity(static_run, residual_run):

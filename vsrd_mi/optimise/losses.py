@@ -151,6 +151,25 @@ def init_loss(dec: DecodedBoxes, centre_init: np.ndarray, velocity_init: np.ndar
     return dr.sum(w * per_box) / max(n, 1)
 
 
+def shape_prior_loss(dec: DecodedBoxes, size_init: np.ndarray, yaw_init: np.ndarray,
+                     w_size: float, w_yaw: float) -> mi.Float:
+    """``sum_n (w_size |size_n - size_init_n|_1 + w_yaw sin^2(yaw_n - yaw_init_n)) / N``.
+
+    ``size`` is the full box size (w, h, l) in metres; ``sin^2`` has period pi, so a box
+    initialised backwards costs nothing.
+    """
+    n = len(size_init)
+    per_box = dr.zeros(mi.Float, n)
+    if w_size > 0:
+        for j in range(3):
+            per_box = per_box + w_size * dr.abs(2.0 * dec.half[j] - to_float(size_init[:, j]))
+    if w_yaw > 0:
+        yaw = np.asarray(yaw_init, dtype=np.float64)
+        sin_d = dec.sin * to_float(np.cos(yaw)) - dec.cos * to_float(np.sin(yaw))
+        per_box = per_box + w_yaw * sin_d * sin_d
+    return dr.sum(per_box) / max(n, 1)
+
+
 def eikonal_loss(field: InstanceField, dec: DecodedBoxes, weights, points_local: np.ndarray,
                  step: float) -> mi.Float:
     """``mean (|grad F_k| - 1)^2`` at box-local sample points of every instance (central differences).

@@ -210,8 +210,11 @@ class BoxOptimiser:
         if self.init_boxes is not None:
             centre_init = np.stack([b.centre for b in self.init_boxes])
             vel_init = np.stack([b.velocity for b in self.init_boxes])
+            size_init = np.stack([b.size for b in self.init_boxes])
+            yaw_init = np.array([b.yaw for b in self.init_boxes])
         init_weights = np.where(self.dynamic, cfg.weights.init_dynamic, cfg.weights.init)
         use_init = centre_init is not None and bool(np.any(init_weights > 0))
+        use_prior = centre_init is not None and (cfg.weights.init_size > 0 or cfg.weights.init_yaw > 0)
         history = {k: [] for k in ("total", "projection", "silhouette", "eikonal", "init")}
         conv = Convergence(cfg.early_stop.window, cfg.early_stop.rel_loss, cfg.early_stop.box_tol)
         sdf_evals = 0
@@ -259,6 +262,10 @@ class BoxOptimiser:
                 l_init = losses.init_loss(dec, centre_init, vel_init if opt_vel is not None else None,
                                           self.dynamic, init_weights)
                 total = total + l_init
+            if use_prior:
+                l_prior = losses.shape_prior_loss(dec, size_init, yaw_init, w.init_size, w.init_yaw)
+                l_init = l_init + l_prior
+                total = total + l_prior
             dr.backward(total)
             for o_ in opts:
                 o_.step()
