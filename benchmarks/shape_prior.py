@@ -38,7 +38,8 @@ from vsrd_mi.bench.autolabel import DATASETS, ensure_dataset
 from vsrd_mi.evaluate.sequence import evaluate_sequence
 
 BUNDLED = Path(__file__).resolve().parent.parent / "scenes" / "kitti360-synth"
-NO_PRIOR = ["--set", "weights.init_size=0", "--set", "weights.init_yaw=0"]
+NO_PRIOR = ["--set", "weights.init_size=0", "--set", "weights.init_yaw=0",
+            "--set", "weights.init_size_dynamic=0", "--set", "weights.init_yaw_dynamic=0"]
 PAPER_BOX_ONLY = ["--config", "paper", "--set", "sampling=adaptive", "--set", "residual=false"]
 SETTINGS = {
     "default": [],

@@ -212,13 +212,13 @@ def test_projection_loss_of_moving_box_matches_numpy():
     assert got == pytest.approx(expected / 3.0, rel=1e-5)
 
 
-def test_projection_loss_gradients_match_finite_differences():
-    field, lanes = two_box_lanes()
-    keys = ("box_centre", "box_dims", "box_yaw", "box_velocity")
+def ad_and_central_differences(field, keys, loss, eps: dict) -> tuple[dict, dict]:
+    """AD gradients of ``loss(decoded boxes)`` w.r.t. the field's raw ``keys`` and their central
+    differences (step ``eps[key]`` per raw coordinate)."""
     base = {k: np.array(field.params[k], dtype=np.float64) for k in keys}
     for k in keys:
         dr.enable_grad(field.params[k])
-    dr.backward(losses.projection_loss(field.decode(), lanes, BETA, W_HUBER, W_DIOU))
+    dr.backward(loss(field.decode()))
     ad = {k: values(dr.grad(field.params[k])) for k in keys}
 
     def loss_at(key, i, delta) -> float:
@@ -227,21 +227,30 @@ def test_projection_loss_gradients_match_finite_differences():
         field.params[key] = to_float(raw)
         try:
             with dr.suspend_grad():
-                return float(values(losses.projection_loss(field.decode(), lanes, BETA, W_HUBER, W_DIOU))[0])
+                return float(values(loss(field.decode()))[0])
         finally:
             field.params[key] = to_float(base[key])
 
+    fd = {k: np.array([(loss_at(k, i, eps[k]) - loss_at(k, i, -eps[k])) / (2 * eps[k]) for i in range(len(base[k]))])
+          for k in keys}
+    return ad, fd
+
+
+def test_projection_loss_gradients_match_finite_differences():
+    field, lanes = two_box_lanes()
+    keys = ("box_centre", "box_dims", "box_yaw", "box_velocity")
     # steps: ~1 mm of centre, ~0.2 mm of half-size, ~0.2 mrad of yaw, 0.2 mm/frame of velocity
     # (~0.05-0.1 px: smaller than the pixel errors, so no Huber or corner switch in between)
     eps = {"box_centre": 1e-4, "box_dims": 5e-4, "box_yaw": 2e-4, "box_velocity": 2e-4}
+    ad, fd = ad_and_central_differences(
+        field, keys, lambda dec: losses.projection_loss(dec, lanes, BETA, W_HUBER, W_DIOU), eps)
     checked = 0
     for key in keys:
-        for i in range(len(base[key])):
+        for i in range(len(ad[key])):
             if key == "box_velocity" and i < 3:
                 assert np.all(ad[key][:3] == 0)  # the static box's velocity does not count
                 continue
-            fd = (loss_at(key, i, eps[key]) - loss_at(key, i, -eps[key])) / (2 * eps[key])
-            assert ad[key][i] == pytest.approx(fd, rel=1e-2, abs=1e-2), (key, i, ad[key][i], fd)
+            assert ad[key][i] == pytest.approx(fd[key][i], rel=1e-2, abs=1e-2), (key, i, ad[key][i], fd[key][i])
             checked += 1
     assert checked == 6 + 6 + 4 + 3
     assert max(abs(v).max() for v in ad.values()) > 1.0  # the gradients are not all ~0
@@ -286,6 +295,9 @@ def test_shape_prior_is_size_l1_plus_yaw_sin_squared_per_box():
     assert got == pytest.approx((2.0 * (1.75 + 0.625) + 3.0 * 0.25) / 2, abs=1e-4)
     assert values(losses.shape_prior_loss(dec, size_init, yaw_init, 0.0, 3.0))[0] == pytest.approx(0.75 / 2, abs=1e-5)
     assert values(losses.shape_prior_loss(dec, size_init, yaw_init, 2.0, 0.0))[0] == pytest.approx(2.375, abs=1e-4)
+    # per-box weights (parked box 0, moving box 1 without a prior): by hand (2 * 1.75 + 3 * 0.25) / 2
+    got = values(losses.shape_prior_loss(dec, size_init, yaw_init, np.array([2.0, 0.0]), np.array([3.0, 0.0])))[0]
+    assert got == pytest.approx((2.0 * 1.75 + 3.0 * 0.25) / 2, abs=1e-4)
     assert values(losses.shape_prior_loss(dec, b["sizes"], b["yaws"], 2.0, 3.0))[0] == pytest.approx(0.0, abs=1e-6)
 
 
@@ -296,26 +308,11 @@ def test_shape_prior_gradients_match_finite_differences():
     size_init = b["sizes"] + np.array([[0.3, -0.2, 0.5], [-0.1, 0.15, -0.4]])  # no coordinate at its kink
     yaw_init = b["yaws"] + np.array([0.4, -2.5])
     keys = ("box_dims", "box_yaw")
-    base = {k: np.array(field.params[k], dtype=np.float64) for k in keys}
-    for k in keys:
-        dr.enable_grad(field.params[k])
-    dr.backward(losses.shape_prior_loss(field.decode(), size_init, yaw_init, 2.0, 3.0))
-    ad = {k: values(dr.grad(field.params[k])) for k in keys}
-
-    def loss_at(key, i, delta) -> float:
-        raw = base[key].copy()
-        raw[i] += delta
-        field.params[key] = to_float(raw)
-        try:
-            with dr.suspend_grad():
-                return float(values(losses.shape_prior_loss(field.decode(), size_init, yaw_init, 2.0, 3.0))[0])
-        finally:
-            field.params[key] = to_float(base[key])
-
+    ad, fd = ad_and_central_differences(
+        field, keys, lambda dec: losses.shape_prior_loss(dec, size_init, yaw_init, 2.0, 3.0),
+        {k: 1e-3 for k in keys})
     for key in keys:
-        for i in range(len(base[key])):
-            fd = (loss_at(key, i, 1e-3) - loss_at(key, i, -1e-3)) / 2e-3
-            assert ad[key][i] == pytest.approx(fd, rel=1e-2, abs=1e-3), (key, i, ad[key][i], fd)
+        np.testing.assert_allclose(ad[key], fd[key], rtol=1e-2, atol=1e-3, err_msg=key)
     assert min(abs(v).max() for v in ad.values()) > 0.1  # both size and yaw pull
 
 
@@ -555,11 +552,14 @@ def test_shape_prior_enters_the_init_term_with_the_initial_boxes(scene):
     obs, gt = scene
     init = [Box3D(b.centre, b.size + np.array([0.0, 0.0, 0.5]), b.yaw + math.pi / 6, b.velocity, b.dynamic,
                   b.instance_id) for b in gt]
-    for w, expected in ((2.0, 1.5), (0.0, 0.0)):
+    moving = np.array([b.dynamic for b in gt])
+    assert 0 < moving.sum() < len(gt)
+    for w, w_dyn, expected in ((2.0, 2.0, 1.5), (0.0, 0.0, 0.0), (2.0, 0.0, 1.5 * (~moving).mean())):
         cfg = quick(residual=False, steps=1)
-        cfg = cfg.replace(weights=dataclasses.replace(cfg.weights, init_size=w, init_yaw=w))
+        cfg = cfg.replace(weights=dataclasses.replace(cfg.weights, init_size=w, init_yaw=w, init_size_dynamic=w_dyn,
+                                                      init_yaw_dynamic=w_dyn))
         result = BoxOptimiser(obs, gt, cfg, init_boxes=init).run()
-        assert result.loss_history["init"][0] == pytest.approx(expected, abs=2e-3), w
+        assert result.loss_history["init"][0] == pytest.approx(expected, abs=2e-3), (w, w_dyn)
 
 
 def test_no_dynamic_instance_no_velocity(static_run, residual_run):

@@ -86,7 +86,8 @@ GRID = (
     BenchSetting("init-dynamic-paper", {"weights": {"init_dynamic": 0.1}}),
     BenchSetting("init-paper", {"weights": {"init": 0.1, "init_dynamic": 0.1}}),
     BenchSetting("init-static-20", {"weights": {"init": 20.0}}),
-    BenchSetting("no-shape-prior", {"weights": {"init_size": 0.0, "init_yaw": 0.0}}),
+    BenchSetting("no-shape-prior", {"weights": {"init_size": 0.0, "init_yaw": 0.0, "init_size_dynamic": 0.0,
+                                                "init_yaw_dynamic": 0.0}}),
     BenchSetting("containment", {"weights": {"projection_mode": "containment"}}),
     BenchSetting("paper", {}, paper=True),
     #: the paper's schedule, losses and residual field with the adaptive sampler: separates the

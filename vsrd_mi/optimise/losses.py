@@ -152,21 +152,24 @@ def init_loss(dec: DecodedBoxes, centre_init: np.ndarray, velocity_init: np.ndar
 
 
 def shape_prior_loss(dec: DecodedBoxes, size_init: np.ndarray, yaw_init: np.ndarray,
-                     w_size: float, w_yaw: float) -> mi.Float:
-    """``sum_n (w_size |size_n - size_init_n|_1 + w_yaw sin^2(yaw_n - yaw_init_n)) / N``.
+                     w_size, w_yaw) -> mi.Float:
+    """``sum_n (w_size_n |size_n - size_init_n|_1 + w_yaw_n sin^2(yaw_n - yaw_init_n)) / N``.
 
     ``size`` is the full box size (w, h, l) in metres; ``sin^2`` has period pi, so a box
-    initialised backwards costs nothing.
+    initialised backwards costs nothing. The weights are scalars or per-box arrays.
     """
     n = len(size_init)
+    ws = np.broadcast_to(np.asarray(w_size, dtype=np.float64), (n,))
+    wy = np.broadcast_to(np.asarray(w_yaw, dtype=np.float64), (n,))
     per_box = dr.zeros(mi.Float, n)
-    if w_size > 0:
+    if np.any(ws > 0):
+        w = to_float(ws)
         for j in range(3):
-            per_box = per_box + w_size * dr.abs(2.0 * dec.half[j] - to_float(size_init[:, j]))
-    if w_yaw > 0:
+            per_box = per_box + w * dr.abs(2.0 * dec.half[j] - to_float(size_init[:, j]))
+    if np.any(wy > 0):
         yaw = np.asarray(yaw_init, dtype=np.float64)
         sin_d = dec.sin * to_float(np.cos(yaw)) - dec.cos * to_float(np.sin(yaw))
-        per_box = per_box + w_yaw * sin_d * sin_d
+        per_box = per_box + to_float(wy) * sin_d * sin_d
     return dr.sum(per_box) / max(n, 1)
 
 

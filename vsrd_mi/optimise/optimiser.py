@@ -214,7 +214,10 @@ class BoxOptimiser:
             yaw_init = np.array([b.yaw for b in self.init_boxes])
         init_weights = np.where(self.dynamic, cfg.weights.init_dynamic, cfg.weights.init)
         use_init = centre_init is not None and bool(np.any(init_weights > 0))
-        use_prior = centre_init is not None and (cfg.weights.init_size > 0 or cfg.weights.init_yaw > 0)
+        w = cfg.weights
+        size_weights = np.where(self.dynamic, w.init_size_dynamic, w.init_size)
+        yaw_weights = np.where(self.dynamic, w.init_yaw_dynamic, w.init_yaw)
+        use_prior = centre_init is not None and bool(np.any(size_weights > 0) or np.any(yaw_weights > 0))
         history = {k: [] for k in ("total", "projection", "silhouette", "eikonal", "init")}
         conv = Convergence(cfg.early_stop.window, cfg.early_stop.rel_loss, cfg.early_stop.box_tol)
         sdf_evals = 0
@@ -263,7 +266,7 @@ class BoxOptimiser:
                                           self.dynamic, init_weights)
                 total = total + l_init
             if use_prior:
-                l_prior = losses.shape_prior_loss(dec, size_init, yaw_init, w.init_size, w.init_yaw)
+                l_prior = losses.shape_prior_loss(dec, size_init, yaw_init, size_weights, yaw_weights)
                 l_init = l_init + l_prior
                 total = total + l_prior
             dr.backward(total)
