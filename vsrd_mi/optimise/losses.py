@@ -151,26 +151,47 @@ def init_loss(dec: DecodedBoxes, centre_init: np.ndarray, velocity_init: np.ndar
     return dr.sum(w * per_box) / max(n, 1)
 
 
+class ShapePrior:
+    """The size / yaw prior's constants as Dr.Jit arrays, converted once per optimisation:
+    initial sizes ``size_init`` (N, 3) (w, h, l), yaws ``yaw_init`` (N,), and weights ``w_size``,
+    ``w_yaw`` (scalars or per box). :meth:`loss` is :func:`shape_prior_loss`."""
+
+    def __init__(self, size_init: np.ndarray, yaw_init: np.ndarray, w_size, w_yaw):
+        n = self.count = len(size_init)
+        ws = np.broadcast_to(np.asarray(w_size, dtype=np.float64), (n,))
+        wy = np.broadcast_to(np.asarray(w_yaw, dtype=np.float64), (n,))
+        yaw = np.asarray(yaw_init, dtype=np.float64)
+        self.w_size = to_float(ws) if np.any(ws > 0) else None
+        self.size = [to_float(np.asarray(size_init)[:, j]) for j in range(3)]
+        self.w_yaw = to_float(wy) if np.any(wy > 0) else None
+        self.cos, self.sin = to_float(np.cos(yaw)), to_float(np.sin(yaw))
+
+    @property
+    def active(self) -> bool:
+        """Whether any box has a non-zero size or yaw weight."""
+        return self.w_size is not None or self.w_yaw is not None
+
+    def loss(self, dec: DecodedBoxes) -> mi.Float:
+        """``sum_n (w_size_n |size_n - size_init_n|_1 + w_yaw_n sin^2(yaw_n - yaw_init_n)) / N``."""
+        per_box = dr.zeros(mi.Float, self.count)
+        if self.w_size is not None:
+            for j in range(3):
+                per_box = per_box + self.w_size * dr.abs(2.0 * dec.half[j] - self.size[j])
+        if self.w_yaw is not None:
+            sin_d = dec.sin * self.cos - dec.cos * self.sin
+            per_box = per_box + self.w_yaw * sin_d * sin_d
+        return dr.sum(per_box) / max(self.count, 1)
+
+
 def shape_prior_loss(dec: DecodedBoxes, size_init: np.ndarray, yaw_init: np.ndarray,
                      w_size, w_yaw) -> mi.Float:
     """``sum_n (w_size_n |size_n - size_init_n|_1 + w_yaw_n sin^2(yaw_n - yaw_init_n)) / N``.
 
     ``size`` is the full box size (w, h, l) in metres; ``sin^2`` has period pi, so a box
-    initialised backwards costs nothing. The weights are scalars or per-box arrays.
+    initialised backwards costs nothing. The weights are scalars or per-box arrays. An
+    optimisation builds the :class:`ShapePrior` once instead.
     """
-    n = len(size_init)
-    ws = np.broadcast_to(np.asarray(w_size, dtype=np.float64), (n,))
-    wy = np.broadcast_to(np.asarray(w_yaw, dtype=np.float64), (n,))
-    per_box = dr.zeros(mi.Float, n)
-    if np.any(ws > 0):
-        w = to_float(ws)
-        for j in range(3):
-            per_box = per_box + w * dr.abs(2.0 * dec.half[j] - to_float(size_init[:, j]))
-    if np.any(wy > 0):
-        yaw = np.asarray(yaw_init, dtype=np.float64)
-        sin_d = dec.sin * to_float(np.cos(yaw)) - dec.cos * to_float(np.sin(yaw))
-        per_box = per_box + to_float(wy) * sin_d * sin_d
-    return dr.sum(per_box) / max(n, 1)
+    return ShapePrior(size_init, yaw_init, w_size, w_yaw).loss(dec)
 
 
 def eikonal_loss(field: InstanceField, dec: DecodedBoxes, weights, points_local: np.ndarray,

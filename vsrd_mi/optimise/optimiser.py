@@ -207,18 +207,19 @@ class BoxOptimiser:
         opt_box = self._adam(self.box_keys, cfg.lr.box)
         opt_vel = self._adam([self.vel_key], cfg.lr.velocity) if self.dynamic.any() else None
         opt_rdf = None
-        centre_init = vel_init = None
+        w = cfg.weights
+        centre_init = vel_init = prior = None
         if self.init_boxes is not None:
             centre_init = np.stack([b.centre for b in self.init_boxes])
             vel_init = np.stack([b.velocity for b in self.init_boxes])
-            size_init = np.stack([b.size for b in self.init_boxes])
-            yaw_init = np.array([b.yaw for b in self.init_boxes])
-        init_weights = np.where(self.dynamic, cfg.weights.init_dynamic, cfg.weights.init)
+            prior = losses.ShapePrior(np.stack([b.size for b in self.init_boxes]),
+                                      np.array([b.yaw for b in self.init_boxes]),
+                                      np.where(self.dynamic, w.init_size_dynamic, w.init_size),
+                                      np.where(self.dynamic, w.init_yaw_dynamic, w.init_yaw))
+            if not prior.active:
+                prior = None
+        init_weights = np.where(self.dynamic, w.init_dynamic, w.init)
         use_init = centre_init is not None and bool(np.any(init_weights > 0))
-        w = cfg.weights
-        size_weights = np.where(self.dynamic, w.init_size_dynamic, w.init_size)
-        yaw_weights = np.where(self.dynamic, w.init_yaw_dynamic, w.init_yaw)
-        use_prior = centre_init is not None and bool(np.any(size_weights > 0) or np.any(yaw_weights > 0))
         history = {k: [] for k in ("total", "projection", "silhouette", "eikonal", "init")}
         conv = Convergence(cfg.early_stop.window, cfg.early_stop.rel_loss, cfg.early_stop.box_tol)
         sdf_evals = 0
@@ -252,7 +253,6 @@ class BoxOptimiser:
             o, d, t, targets = self.sampler.sample(self.perm)
             labels = it.render_rays(o, d, t)[:-1]
             sdf_evals += it.last_stats.get("sdf_evals", 0)
-            w = cfg.weights
             l_proj = losses.projection_loss(dec, self._lanes, w.huber_beta, w.projection_huber, w.projection_diou,
                                             containment=w.projection_mode == "containment")
             l_sil = losses.silhouette_loss(labels, targets, w.bce_eps)
@@ -266,8 +266,8 @@ class BoxOptimiser:
                 l_init = losses.init_loss(dec, centre_init, vel_init if opt_vel is not None else None,
                                           self.dynamic, init_weights)
                 total = total + l_init
-            if use_prior:
-                l_prior = losses.shape_prior_loss(dec, size_init, yaw_init, size_weights, yaw_weights)
+            if prior is not None:
+                l_prior = prior.loss(dec)
                 l_init = l_init + l_prior
                 total = total + l_prior
             dr.backward(total)
