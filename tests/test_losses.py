@@ -154,25 +154,39 @@ def test_projection_of_a_box_straight_ahead_by_hand():
     assert bool(values(valid)[0])
 
 
-@pytest.mark.parametrize("containment", [False, True])
-def test_projection_loss_by_hand(containment):
+@pytest.mark.parametrize("containment, excess", [(False, 0.0), (True, 0.0), (True, 0.25), (True, 1.0)])
+def test_projection_loss_by_hand(containment, excess):
     field, _, _ = straight_ahead()
     b = field.numpy_boxes()
     pred = np_footprint(b["centres"][0], b["sizes"][0], 0.0, np.eye(4))  # ~ (288.75, 202.5, 413.75, 302.5)
     mask = np.array([289.25, 200.0, 410.5, 305.0])
-    if containment:  # only the mask box's parts outside the projected box: 0, 2.5, 0, 2.5
-        err = [max(pred[0] - mask[0], 0.0), max(pred[1] - mask[1], 0.0),
+    # the mask box's parts outside the projected box: 0, 2.5, 0, 2.5 (Huber 0 + 2 + 0 + 2);
+    # the projected box's parts outside the mask box: 0.5, 0, 3.25, 0 (Huber 0.125 + 0 + 2.75 + 0)
+    outside = [max(pred[0] - mask[0], 0.0), max(pred[1] - mask[1], 0.0),
                max(mask[2] - pred[2], 0.0), max(mask[3] - pred[3], 0.0)]
-        hand = 2.0 + 2.0
+    excess_parts = [max(mask[0] - pred[0], 0.0), max(mask[1] - pred[1], 0.0),
+                    max(pred[2] - mask[2], 0.0), max(pred[3] - mask[3], 0.0)]
+    if containment:
+        huber_sum = np_huber(outside) + excess * np_huber(excess_parts)
+        hand = 4.0 + excess * 2.875
     else:  # errors -0.5 (quadratic branch), 2.5, 3.25, -2.5 (linear): 0.125 + 2 + 2.75 + 2
-        err = list(pred - mask)
+        huber_sum = np_huber(list(pred - mask))
         hand = 6.875
-    assert np_huber(err) == pytest.approx(hand, abs=2e-3)
-    expected = W_HUBER * np_huber(err) + W_DIOU * (1.0 - np_diou(pred, mask))
+    assert huber_sum == pytest.approx(hand, abs=2e-3)
+    expected = W_HUBER * huber_sum + W_DIOU * (1.0 - np_diou(pred, mask))
     lanes = losses.ProjectionLanes(np.array([0]), np.zeros(1), np.eye(4)[None], mask[None], K, IMAGE_BOUNDS)
-    got = values(losses.projection_loss(field.decode(), lanes, BETA, W_HUBER, W_DIOU, containment=containment))[0]
+    got = values(losses.projection_loss(field.decode(), lanes, BETA, W_HUBER, W_DIOU, containment=containment,
+                                        excess=excess))[0]
     assert got == pytest.approx(expected, rel=1e-5)
     assert 0.0 < 1.0 - np_diou(pred, mask) < 0.2  # the DIoU term is really in there
+
+
+def test_containment_with_full_excess_weight_is_the_symmetric_loss():
+    field, lanes = two_box_lanes()
+    dec = field.decode()
+    sym = values(losses.projection_loss(dec, lanes, BETA, W_HUBER, W_DIOU))[0]
+    full = values(losses.projection_loss(dec, lanes, BETA, W_HUBER, W_DIOU, containment=True, excess=1.0))[0]
+    assert full == pytest.approx(sym, rel=1e-6)
 
 
 def two_box_lanes():

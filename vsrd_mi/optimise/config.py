@@ -80,6 +80,10 @@ class LossWeights:
     #: Projection loss form: "symmetric" (the paper) or "containment" (only mask-box parts outside
     #: the projected box count; see :func:`vsrd_mi.optimise.losses.projection_loss`).
     projection_mode: str = "symmetric"
+    #: ``containment`` mode only: weight of the projected box's parts outside the mask box (the
+    #: mask box's parts outside the projected box weigh 1; 1 here is the symmetric loss, 0 pure
+    #: containment).
+    projection_excess: float = 0.0
     #: Rendered labels are clamped to [eps, 1 - eps] inside the BCE.
     bce_eps: float = 1e-6
 

@@ -98,16 +98,20 @@ def projected_boxes(dec: DecodedBoxes, lanes: ProjectionLanes):
 
 
 def projection_loss(dec: DecodedBoxes, lanes: ProjectionLanes, beta: float,
-                    w_huber: float, w_diou: float, containment: bool = False) -> mi.Float:
+                    w_huber: float, w_diou: float, containment: bool = False,
+                    excess: float = 0.0) -> mi.Float:
     """Mean over lanes of ``w_huber * sum_4 Huber(e_i) + w_diou * (1 - DIoU)``.
 
     ``symmetric`` (the paper, ``containment=False``): ``e = pred - mask box`` per coordinate.
-    ``containment=True``: only the part of the mask box that sticks out of the projected box
-    counts, ``e = max(0, x1p - x1m), max(0, y1p - y1m), max(0, x2m - x2p), max(0, y2m - y2p)``:
-    a box that contains the object projects to a rectangle containing the mask's box, but not
-    onto it (an object is not a box: its silhouette is smaller than its box's footprint), so the
-    symmetric loss pulls boxes smaller -- and, for moving cars whose depth trades off against
-    velocity, farther away.
+    ``containment=True``: the part of the mask box that sticks out of the projected box counts
+    fully, ``u = max(0, x1p - x1m), max(0, y1p - y1m), max(0, x2m - x2p), max(0, y2m - y2p)``,
+    and the part of the projected box outside the mask box (``o``, the same with the signs
+    swapped) with weight ``excess``: ``Huber(u_i) + excess * Huber(o_i)`` (``excess = 1`` is the
+    symmetric loss). A box that contains the object projects to a rectangle containing the
+    mask's box, but not onto it (an object is not a box: its silhouette is smaller than its
+    box's footprint), so the symmetric loss pulls boxes smaller -- and, for moving cars whose
+    depth trades off against velocity, farther away; with ``excess < 1`` the mask boxes bound
+    the box from inside and ``excess`` only tightens it.
     """
     if lanes.count == 0:
         return mi.Float(0.0)
@@ -115,13 +119,17 @@ def projection_loss(dec: DecodedBoxes, lanes: ProjectionLanes, beta: float,
     pred = (x1, y1, x2, y2)
     tgt = lanes.target
     if containment:
-        errs = [dr.maximum(x1 - tgt[0], 0.0), dr.maximum(y1 - tgt[1], 0.0),
-                dr.maximum(tgt[2] - x2, 0.0), dr.maximum(tgt[3] - y2, 0.0)]
+        # positive where the mask box sticks out of the projected box (min sides: pred > mask)
+        out = [x1 - tgt[0], y1 - tgt[1], tgt[2] - x2, tgt[3] - y2]
+        h = mi.Float(0.0)
+        for e in out:
+            h = h + huber(dr.maximum(e, 0.0), beta)
+            if excess > 0:
+                h = h + excess * huber(dr.maximum(-e, 0.0), beta)
     else:
-        errs = [pred[i] - tgt[i] for i in range(4)]
-    h = huber(errs[0], beta)
-    for e in errs[1:]:
-        h = h + huber(e, beta)
+        h = mi.Float(0.0)
+        for i in range(4):
+            h = h + huber(pred[i] - tgt[i], beta)
     total = w_huber * h
     if w_diou > 0:
         total = total + w_diou * (1.0 - boxes2d.diou(pred, tgt, xp=dr))
@@ -136,19 +144,38 @@ def silhouette_loss(labels: list, targets: list, eps: float) -> mi.Float:
     return total / max(len(labels), 1)
 
 
+class InitAnchor:
+    """The init regulariser's constants as Dr.Jit arrays, converted once per optimisation:
+    initial centres ``centre_init`` (N, 3), velocities ``velocity_init`` (N, 3) or None (no
+    velocity term), the mask of boxes whose velocity counts ``velocity_mask`` (N,) and weights
+    ``box_weights`` (N,) or None (all 1). :meth:`loss` is :func:`init_loss`."""
+
+    def __init__(self, centre_init: np.ndarray, velocity_init: np.ndarray | None,
+                 velocity_mask: np.ndarray | None, box_weights: np.ndarray | None = None):
+        n = self.count = len(centre_init)
+        self.centre = [to_float(np.asarray(centre_init)[:, j]) for j in range(3)]
+        self.w = to_float(np.ones(n) if box_weights is None else box_weights)
+        self.velocity = self.mask = None
+        if velocity_init is not None:
+            self.velocity = [to_float(np.asarray(velocity_init)[:, j]) for j in range(3)]
+            self.mask = to_float(np.ones(n) if velocity_mask is None else velocity_mask)
+
+    def loss(self, dec: DecodedBoxes) -> mi.Float:
+        """``sum_n w_n (|l_n - l_init|_1 + m_n |v_n - v_init|_1) / N``."""
+        per_box = dr.zeros(mi.Float, self.count)
+        for j in range(3):
+            per_box = per_box + dr.abs(dec.centre[j] - self.centre[j])
+            if self.velocity is not None:
+                per_box = per_box + self.mask * dr.abs(dec.velocity[j] - self.velocity[j])
+        return dr.sum(self.w * per_box) / max(self.count, 1)
+
+
 def init_loss(dec: DecodedBoxes, centre_init: np.ndarray, velocity_init: np.ndarray | None,
               velocity_mask: np.ndarray | None, box_weights: np.ndarray | None = None) -> mi.Float:
     """``sum_n w_n (|l_n - l_init|_1 + |v_n - v_init|_1) / N`` (velocity only where
-    ``velocity_mask``); ``box_weights`` ``w_n`` default to 1."""
-    n = len(centre_init)
-    w = to_float(np.ones(n) if box_weights is None else box_weights)
-    per_box = dr.zeros(mi.Float, n)
-    m = to_float(velocity_mask) if velocity_init is not None else None
-    for j in range(3):
-        per_box = per_box + dr.abs(dec.centre[j] - to_float(centre_init[:, j]))
-        if m is not None:
-            per_box = per_box + m * dr.abs(dec.velocity[j] - to_float(velocity_init[:, j]))
-    return dr.sum(w * per_box) / max(n, 1)
+    ``velocity_mask``); ``box_weights`` ``w_n`` default to 1. An optimisation builds the
+    :class:`InitAnchor` once instead."""
+    return InitAnchor(centre_init, velocity_init, velocity_mask, box_weights).loss(dec)
 
 
 class ShapePrior:

@@ -208,18 +208,20 @@ class BoxOptimiser:
         opt_vel = self._adam([self.vel_key], cfg.lr.velocity) if self.dynamic.any() else None
         opt_rdf = None
         w = cfg.weights
-        centre_init = vel_init = prior = None
+        anchor = prior = None
+        init_weights = np.where(self.dynamic, w.init_dynamic, w.init)
         if self.init_boxes is not None:
-            centre_init = np.stack([b.centre for b in self.init_boxes])
-            vel_init = np.stack([b.velocity for b in self.init_boxes])
+            if np.any(init_weights > 0):
+                anchor = losses.InitAnchor(np.stack([b.centre for b in self.init_boxes]),
+                                           np.stack([b.velocity for b in self.init_boxes])
+                                           if opt_vel is not None else None,
+                                           self.dynamic, init_weights)
             prior = losses.ShapePrior(np.stack([b.size for b in self.init_boxes]),
                                       np.array([b.yaw for b in self.init_boxes]),
                                       np.where(self.dynamic, w.init_size_dynamic, w.init_size),
                                       np.where(self.dynamic, w.init_yaw_dynamic, w.init_yaw))
             if not prior.active:
                 prior = None
-        init_weights = np.where(self.dynamic, w.init_dynamic, w.init)
-        use_init = centre_init is not None and bool(np.any(init_weights > 0))
         history = {k: [] for k in ("total", "projection", "silhouette", "eikonal", "init")}
         conv = Convergence(cfg.early_stop.window, cfg.early_stop.rel_loss, cfg.early_stop.box_tol)
         sdf_evals = 0
@@ -254,7 +256,8 @@ class BoxOptimiser:
             labels = it.render_rays(o, d, t)[:-1]
             sdf_evals += it.last_stats.get("sdf_evals", 0)
             l_proj = losses.projection_loss(dec, self._lanes, w.huber_beta, w.projection_huber, w.projection_diou,
-                                            containment=w.projection_mode == "containment")
+                                            containment=w.projection_mode == "containment",
+                                            excess=w.projection_excess)
             l_sil = losses.silhouette_loss(labels, targets, w.bce_eps)
             total = l_proj + w.silhouette * l_sil
             l_eik = l_init = mi.Float(0.0)
@@ -262,9 +265,8 @@ class BoxOptimiser:
                 l_eik = losses.eikonal_loss(it.field, dec, it.field.residual_weights(), self.eik_points,
                                             cfg.eikonal_step)
                 total = total + w.eikonal * l_eik
-            if use_init:
-                l_init = losses.init_loss(dec, centre_init, vel_init if opt_vel is not None else None,
-                                          self.dynamic, init_weights)
+            if anchor is not None:
+                l_init = anchor.loss(dec)
                 total = total + l_init
             if prior is not None:
                 l_prior = prior.loss(dec)
