@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from vsrd_mi.bench.autolabel import DATASETS, ensure_dataset
+from common import TARGETS, dataset_root, write_results
 from vsrd_mi.data.kitti360 import Sequence
 from vsrd_mi.data.observations import load_observations
 from vsrd_mi.data.selection import SelectionConfig, spec_for_frame
@@ -39,17 +39,7 @@ from vsrd_mi.optimise.autolabel import box_in_frame, initial_boxes
 from vsrd_mi.optimise.config import default_config
 from vsrd_mi.optimise.optimiser import BoxOptimiser
 
-BUNDLED = Path(__file__).resolve().parent.parent / "scenes" / "kitti360-synth"
-#: (dataset, target frame): the benchmark's targets and the bundled example's (as in shape_prior.py).
-TARGETS = (("static-heavy", 11), ("static-heavy", 18), ("dynamic-heavy", 8), ("dynamic-heavy", 13),
-           ("dynamic-heavy", 19), ("bundled", 14))
 STARTS = ("from-init", "from-gt")
-
-
-def dataset_root(name: str, data_dir: Path) -> Path:
-    if name == "bundled":
-        return BUNDLED
-    return ensure_dataset(data_dir, next(d for d in DATASETS if d.name == name))
 
 
 def run_target(root: Path, frame: int, start: str, overrides: list[str]) -> list[dict]:
@@ -110,9 +100,8 @@ def main(argv: list[str] | None = None) -> int:
                 rows.append({"dataset": ds, "frame": frame, "start": start, **row})
                 print(json.dumps(rows[-1]), flush=True)
     summary = summarise(rows)
-    args.out.write_text(json.dumps({"purpose": __doc__.split("\n\n")[0], "command": " ".join(sys.argv),
-                                    "overrides": args.overrides, "elapsed_seconds": time.perf_counter() - t0,
-                                    "summary": summary, "rows": rows}, indent=1))
+    write_results(args.out, __doc__, time.perf_counter() - t0, overrides=args.overrides, summary=summary,
+                  rows=rows)
     print(json.dumps(summary, indent=1))
     return 0
 

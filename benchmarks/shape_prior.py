@@ -34,10 +34,9 @@ from pathlib import Path
 
 import numpy as np
 
-from vsrd_mi.bench.autolabel import DATASETS, ensure_dataset
+from common import TARGETS, dataset_root, write_results
 from vsrd_mi.evaluate.sequence import evaluate_sequence
 
-BUNDLED = Path(__file__).resolve().parent.parent / "scenes" / "kitti360-synth"
 NO_PRIOR = ["--set", "weights.init_size=0", "--set", "weights.init_yaw=0",
             "--set", "weights.init_size_dynamic=0", "--set", "weights.init_yaw_dynamic=0"]
 PAPER_BOX_ONLY = ["--config", "paper", "--set", "sampling=adaptive", "--set", "residual=false"]
@@ -47,15 +46,6 @@ SETTINGS = {
     "paper-box-only": PAPER_BOX_ONLY,
     "paper-box-only-no-prior": PAPER_BOX_ONLY + NO_PRIOR,
 }
-#: (dataset, target frame): the benchmark's targets and the bundled example's.
-TARGETS = (("static-heavy", 11), ("static-heavy", 18), ("dynamic-heavy", 8), ("dynamic-heavy", 13),
-           ("dynamic-heavy", 19), ("bundled", 14))
-
-
-def dataset_root(name: str, data_dir: Path) -> Path:
-    if name == "bundled":
-        return BUNDLED
-    return ensure_dataset(data_dir, next(d for d in DATASETS if d.name == name))
 
 
 def run_one(root: Path, frame: int, args: list[str], out: Path) -> float:
@@ -92,9 +82,7 @@ def main(argv: list[str] | None = None) -> int:
         vals = [r["mean_iou_3d_all"] for r in rows if r["setting"] == name]
         summary[name] = {"mean_iou_3d": float(np.mean(vals)),
                          "seconds": float(np.mean([r["optimisation_seconds"] for r in rows if r["setting"] == name]))}
-    args.out.write_text(json.dumps({"purpose": __doc__.split("\n\n")[0], "command": " ".join(sys.argv),
-                                    "elapsed_seconds": time.perf_counter() - t0, "summary": summary,
-                                    "rows": rows}, indent=1))
+    write_results(args.out, __doc__, time.perf_counter() - t0, summary=summary, rows=rows)
     print(json.dumps(summary, indent=1))
     return 0
 
