@@ -23,6 +23,7 @@ Usage::
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 import time
@@ -100,8 +101,9 @@ def main(argv: list[str] | None = None) -> int:
                 rows.append({"dataset": ds, "frame": frame, "start": start, **row})
                 print(json.dumps(rows[-1]), flush=True)
     summary = summarise(rows)
-    write_results(args.out, __doc__, time.perf_counter() - t0, overrides=args.overrides, summary=summary,
-                  rows=rows)
+    weights = default_config().with_overrides(args.overrides).weights
+    write_results(args.out, __doc__, time.perf_counter() - t0, overrides=args.overrides,
+                  weights=dataclasses.asdict(weights), summary=summary, rows=rows)
     print(json.dumps(summary, indent=1))
     return 0
 

@@ -1,16 +1,23 @@
 """Configuration presets and the CLI's ``--set KEY=VALUE`` overrides."""
 
+import dataclasses
+
 import pytest
 
-from vsrd_mi.optimise.config import AutolabelConfig, LossWeights, default_config, paper_config
+from vsrd_mi.optimise.config import (LONG_SCHEDULE_SHAPE_PRIOR, AutolabelConfig, LossWeights, default_config,
+                                     paper_config)
 
 
-def test_presets_differ_in_budget_not_in_losses():
+def test_presets_differ_in_budget_and_the_long_schedules_shape_prior_only():
     d, p = default_config(), paper_config()
     assert (p.steps, p.warmup_steps, p.rays_per_step, p.sampling) == (3000, 1000, 1000, "dense")
     assert not p.early_stop.enabled and d.early_stop.enabled
     assert p.residual and not d.residual
-    assert p.weights == d.weights == LossWeights()
+    assert d.weights == LossWeights()
+    prior = ("init_size", "init_yaw", "init_size_dynamic", "init_yaw_dynamic")
+    assert all(getattr(d.weights, k) == 0.0 for k in prior)  # the default runs without the prior
+    assert all(getattr(p.weights, k) == LONG_SCHEDULE_SHAPE_PRIOR > 0 for k in prior)
+    assert dataclasses.replace(p.weights, **{k: 0.0 for k in prior}) == d.weights  # nothing else differs
 
 
 def test_overrides_set_nested_and_top_level_fields():

@@ -47,34 +47,33 @@ class LossWeights:
     #: Measured (mean 3D IoU of moving cars, default config): 0.1 (the paper) 0.23, 20 0.68 on the
     #: dynamic-heavy benchmark sequence (targets 8, 13, 19); 0.1 0.14, 3 0.55, 20 0.64 on the
     #: bundled scene's target 21. Static cars are unchanged. Not a paper setting: the ``paper``
-    #: preset shares it (it differs from the default in compute budget, not in the losses).
+    #: preset shares it (it differs from the default in compute budget and the size / yaw prior).
     init_dynamic: float = 20.0
-    #: Size prior (not in the paper): L1 distance (m) of each box's size from its initial size
-    #: (the stereo fit, at least a typical car; :class:`vsrd_mi.init.config.FootprintConfig`).
-    #: The projection loss hardly sees some directions of a box -- the length of a car seen
-    #: end-on, the yaw / length trade-off of a car ahead -- and is biased in them (a car's mask box
-    #: is smaller than its box's footprint), so without a prior the boxes drift along them for
-    #: as long as the optimisation runs: over the paper's 3000 steps parked cars came out 0.9-2.3 m
-    #: short and a van turned 46 degrees (dynamic-heavy frame 13), and `paper` ended 0.04-0.09
-    #: mean 3D IoU below the 600-step default. With ``init_size = init_yaw = 2`` (the static
-    #: cars' ``init`` weight: a metre of size costs what a metre of position does) the 3000-step
-    #: box-only run and the default agree in mean 3D IoU over six targets of three sequences
-    #: (0.674 and 0.675; without the prior 0.609 and 0.680; length error of the default 0.25-0.38 m
-    #: instead of 0.39-0.65 m; ``benchmarks/autolabel_shape_prior.json``), and so do the full
-    #: ``paper`` preset and the default (``benchmarks/autolabel_paper_prior.json``). Where the
-    #: images do see a size (height, the width of a car side-on, anything of a near car), the
-    #: pixel-scale projection term outweighs the prior and it moves. 0 switches a term off.
-    init_size: float = 2.0
+    #: Size prior (not in the paper; on in the ``paper`` preset, off in the default): L1 distance
+    #: (m) of each box's size from its initial size (the stereo fit, at least a typical car;
+    #: :class:`vsrd_mi.init.config.FootprintConfig`). The projection loss hardly sees some
+    #: directions of a box -- the length of a car seen end-on, the yaw / length trade-off of a
+    #: car ahead -- and is biased in them (a car's mask box is smaller than its box's footprint),
+    #: so without a prior the boxes drift along them for as long as the optimisation runs: over
+    #: the paper's 3000 steps parked cars came out 0.9-2.3 m short and a van turned 46 degrees
+    #: (dynamic-heavy frame 13), and `paper` ended 0.04-0.09 mean 3D IoU below the 600-step
+    #: default. With 2 (a metre of size costs what a metre of position does) the 3000-step runs
+    #: end where the short one does (``benchmarks/autolabel_shape_prior.json``,
+    #: ``benchmarks/autolabel_paper_prior.json``). The 600-step default with early stopping
+    #: does not drift that far, and there the prior costs accuracy (it pulls cars shorter than
+    #: typical towards 4.3 m): mean 3D IoU without / with it on six targets of three sequences
+    #: 0.680 / 0.675, bundled scene parked 0.668 / 0.648, three fresh 4 + 2 sequences parked
+    #: 0.694 / 0.665 and moving 0.612 / 0.610 (``benchmarks/mixed_sequences*.json``), length
+    #: error 0.39-0.65 m / 0.25-0.38 m. So the default leaves it off and a long schedule
+    #: (``paper``, or ``--steps`` well beyond 600) should turn it on. 0 switches a term off.
+    init_size: float = 0.0
     #: Yaw prior (not in the paper): ``sin^2`` of each box's yaw change from its initial yaw
     #: (period pi: a box initialised backwards costs nothing). See ``init_size``.
-    init_yaw: float = 2.0
-    #: ``init_size`` / ``init_yaw`` of moving cars (those two apply to parked ones). Moving cars
-    #: are already held by ``init_dynamic``; measured with 0 here (prior on parked cars only):
-    #: moving cars static-heavy frame 18 0.643 vs 0.607, bundled scene (six targets) 0.639 vs
-    #: 0.627, parked cars unchanged. The paper-vs-default comparison was measured at 2, so 2 is
-    #: kept until it is rerun with 0.
-    init_size_dynamic: float = 2.0
-    init_yaw_dynamic: float = 2.0
+    init_yaw: float = 0.0
+    #: ``init_size`` / ``init_yaw`` of moving cars (those two apply to parked ones; the
+    #: ``paper`` preset sets all four to 2). Moving cars are already held by ``init_dynamic``.
+    init_size_dynamic: float = 0.0
+    init_yaw_dynamic: float = 0.0
     #: Huber (smooth L1) transition, pixels.
     huber_beta: float = 1.0
     #: Projection loss form: "symmetric" (the paper) or "containment" (only mask-box parts outside
@@ -217,13 +216,20 @@ class AutolabelConfig:
         return AutolabelConfig(**d)
 
 
+#: Weight of the size / yaw prior in long schedules (see ``LossWeights.init_size``).
+LONG_SCHEDULE_SHAPE_PRIOR = 2.0
+
+
 def paper_config() -> AutolabelConfig:
     """The paper's settings: 3000 steps, RDF on from step 1000, 1000 rays, dense sampling, no early stop.
 
-    The loss weights are the default's (:class:`LossWeights`), including ``init_dynamic``.
+    The loss weights are the default's (:class:`LossWeights`, including ``init_dynamic``) plus
+    the size / yaw prior, which 3000 steps need (``LossWeights.init_size``).
     """
+    p = LONG_SCHEDULE_SHAPE_PRIOR
+    weights = LossWeights(init_size=p, init_yaw=p, init_size_dynamic=p, init_yaw_dynamic=p)
     return AutolabelConfig(name="paper", steps=3000, warmup_steps=1000, rays_per_step=1000,
-                           sampling="dense", residual=True, early_stop=EarlyStop(enabled=False))
+                           sampling="dense", residual=True, weights=weights, early_stop=EarlyStop(enabled=False))
 
 
 def default_config() -> AutolabelConfig:

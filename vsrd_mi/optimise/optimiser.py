@@ -11,7 +11,8 @@ integrator with one box per target instance), reads its differentiable parameter
    integrator's ray-batch entry point, BCE against the masks;
 4. projection loss on every (frame, box) pair where the matched instance is visible; eikonal loss
    while the residual field is on; init regulariser when an initialisation exists (centre and
-   velocity as in the paper, plus the size / yaw prior, :func:`losses.shape_prior_loss`);
+   velocity as in the paper, plus the size / yaw prior where its weights are set -- the
+   ``paper`` preset's long schedule --, :func:`losses.shape_prior_loss`);
 5. box-only warm-up: the residual field is neither optimised nor evaluated before
    ``warmup_steps``; no velocity parameters when no instance is dynamic;
 6. early stop when the loss and the boxes have converged (:class:`Convergence`).
