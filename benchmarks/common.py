@@ -8,6 +8,7 @@ import sys
 from pathlib import Path
 
 from vsrd_mi.bench.autolabel import DATASETS, ensure_dataset
+from vsrd_mi.optimise.config import SHAPE_PRIOR_FIELDS
 
 #: The bundled example scene.
 BUNDLED = Path(__file__).resolve().parent.parent / "scenes" / "kitti360-synth"
@@ -21,6 +22,11 @@ def dataset_root(name: str, data_dir: Path) -> Path:
     if name == "bundled":
         return BUNDLED
     return ensure_dataset(data_dir, next(d for d in DATASETS if d.name == name))
+
+
+def shape_prior_args(weight: float) -> list[str]:
+    """``vsrd-mi autolabel`` arguments setting every size / yaw prior weight to ``weight``."""
+    return [arg for k in SHAPE_PRIOR_FIELDS for arg in ("--set", f"weights.{k}={weight:g}")]
 
 
 def write_results(path: Path, doc: str | None, elapsed: float, **fields) -> None:

@@ -37,15 +37,14 @@ from vsrd_mi.data.observations import load_observations
 from vsrd_mi.data.selection import SelectionConfig, spec_for_frame
 from vsrd_mi.evaluate.metrics import hungarian_pairs, yaw_error_mod_pi
 from vsrd_mi.optimise.autolabel import box_in_frame, initial_boxes
-from vsrd_mi.optimise.config import default_config
+from vsrd_mi.optimise.config import AutolabelConfig, default_config
 from vsrd_mi.optimise.optimiser import BoxOptimiser
 
 STARTS = ("from-init", "from-gt")
 
 
-def run_target(root: Path, frame: int, start: str, overrides: list[str]) -> list[dict]:
+def run_target(root: Path, frame: int, start: str, cfg: AutolabelConfig) -> list[dict]:
     """Optimise one target frame from ``start``; one row per ground-truth car of the frame."""
-    cfg = default_config().with_overrides(overrides)
     seq = Sequence(root, 0)
     spec = spec_for_frame(seq, frame, SelectionConfig())
     obs = load_observations(seq, spec)
@@ -92,18 +91,18 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--starts", nargs="+", default=list(STARTS), choices=STARTS)
     args = ap.parse_args(argv)
     targets = [(t.split(":")[0], int(t.split(":")[1])) for t in args.targets]
+    cfg = default_config().with_overrides(args.overrides)
     rows = []
     t0 = time.perf_counter()
     for ds, frame in targets:
         root = dataset_root(ds, args.data_dir)
         for start in args.starts:
-            for row in run_target(root, frame, start, args.overrides):
+            for row in run_target(root, frame, start, cfg):
                 rows.append({"dataset": ds, "frame": frame, "start": start, **row})
                 print(json.dumps(rows[-1]), flush=True)
     summary = summarise(rows)
-    weights = default_config().with_overrides(args.overrides).weights
     write_results(args.out, __doc__, time.perf_counter() - t0, overrides=args.overrides,
-                  weights=dataclasses.asdict(weights), summary=summary, rows=rows)
+                  weights=dataclasses.asdict(cfg.weights), summary=summary, rows=rows)
     print(json.dumps(summary, indent=1))
     return 0
 

@@ -35,13 +35,12 @@ from pathlib import Path
 
 import numpy as np
 
-from common import TARGETS, dataset_root, write_results
+from common import TARGETS, dataset_root, shape_prior_args, write_results
 from vsrd_mi.evaluate.sequence import evaluate_sequence
+from vsrd_mi.optimise.config import LONG_SCHEDULE_SHAPE_PRIOR
 
-PRIOR = ["--set", "weights.init_size=2", "--set", "weights.init_yaw=2",
-         "--set", "weights.init_size_dynamic=2", "--set", "weights.init_yaw_dynamic=2"]
-NO_PRIOR = ["--set", "weights.init_size=0", "--set", "weights.init_yaw=0",
-            "--set", "weights.init_size_dynamic=0", "--set", "weights.init_yaw_dynamic=0"]
+PRIOR = shape_prior_args(LONG_SCHEDULE_SHAPE_PRIOR)
+NO_PRIOR = shape_prior_args(0)
 PAPER_BOX_ONLY = ["--config", "paper", "--set", "sampling=adaptive", "--set", "residual=false"]
 SETTINGS = {  # explicit either way: the default's prior changed (on when this was measured, off now)
     "default": PRIOR,

@@ -28,7 +28,8 @@ import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
-from ..optimise.config import AutolabelConfig, default_config, paper_config
+from ..optimise.config import (LONG_SCHEDULE_SHAPE_PRIOR, SHAPE_PRIOR_FIELDS, AutolabelConfig, default_config,
+                               paper_config)
 
 
 @dataclass(frozen=True)
@@ -87,8 +88,7 @@ GRID = (
     BenchSetting("init-paper", {"weights": {"init": 0.1, "init_dynamic": 0.1}}),
     BenchSetting("init-static-20", {"weights": {"init": 20.0}}),
     #: the size / yaw prior of the ``paper`` preset on the default (off there since it measured worse)
-    BenchSetting("shape-prior", {"weights": {"init_size": 2.0, "init_yaw": 2.0, "init_size_dynamic": 2.0,
-                                             "init_yaw_dynamic": 2.0}}),
+    BenchSetting("shape-prior", {"weights": {k: LONG_SCHEDULE_SHAPE_PRIOR for k in SHAPE_PRIOR_FIELDS}}),
     BenchSetting("containment", {"weights": {"projection_mode": "containment"}}),
     BenchSetting("paper", {}, paper=True),
     #: the paper's schedule, losses and residual field with the adaptive sampler: separates the

@@ -15,6 +15,8 @@ from dataclasses import dataclass, field
 
 #: Forms of the projection loss (see :func:`vsrd_mi.optimise.losses.projection_loss`).
 PROJECTION_MODES = ("symmetric", "containment")
+#: The :class:`LossWeights` fields of the size / yaw prior (parked and moving cars).
+SHAPE_PRIOR_FIELDS = ("init_size", "init_yaw", "init_size_dynamic", "init_yaw_dynamic")
 
 
 @dataclass(frozen=True)
@@ -88,6 +90,10 @@ class LossWeights:
     projection_excess: float = 0.0
     #: Rendered labels are clamped to [eps, 1 - eps] inside the BCE.
     bce_eps: float = 1e-6
+
+    def with_shape_prior(self, weight: float) -> "LossWeights":
+        """These weights with every size / yaw prior weight (:data:`SHAPE_PRIOR_FIELDS`) set to ``weight``."""
+        return dataclasses.replace(self, **{k: float(weight) for k in SHAPE_PRIOR_FIELDS})
 
     def __post_init__(self) -> None:
         if self.projection_mode not in PROJECTION_MODES:
@@ -226,8 +232,7 @@ def paper_config() -> AutolabelConfig:
     The loss weights are the default's (:class:`LossWeights`, including ``init_dynamic``) plus
     the size / yaw prior, which 3000 steps need (``LossWeights.init_size``).
     """
-    p = LONG_SCHEDULE_SHAPE_PRIOR
-    weights = LossWeights(init_size=p, init_yaw=p, init_size_dynamic=p, init_yaw_dynamic=p)
+    weights = LossWeights().with_shape_prior(LONG_SCHEDULE_SHAPE_PRIOR)
     return AutolabelConfig(name="paper", steps=3000, warmup_steps=1000, rays_per_step=1000,
                            sampling="dense", residual=True, weights=weights, early_stop=EarlyStop(enabled=False))
 
