@@ -26,7 +26,7 @@ from vsrd_mi.export.kitti_labels import label_from_box, write_labels
 from vsrd_mi.geometry import boxes2d
 from vsrd_mi.geometry.boxes import Box3D
 from vsrd_mi.optimise import losses
-from vsrd_mi.optimise.config import default_config
+from vsrd_mi.optimise.config import CarProfile, default_config
 from vsrd_mi.optimise.losses import to_float
 from vsrd_mi.optimise.optimiser import BoxOptimiser, Convergence, cosine
 
@@ -154,6 +154,65 @@ def test_projection_of_a_box_straight_ahead_by_hand():
     assert bool(values(valid)[0])
 
 
+def np_profile_footprint(centre, size, yaw, world_to_cam, clearance, overhang) -> np.ndarray:
+    """Independent car-profile footprint: the union of the body box (bottom raised by
+    ``clearance``) and the wheel box (``overhang`` off each end), y down."""
+    body_c, body_s = np.array(centre, float), np.array(size, float)
+    body_c[1] -= clearance / 2
+    body_s[1] -= clearance
+    wheel_s = np.array(size, float)
+    wheel_s[2] -= 2 * overhang
+    a = np_footprint(body_c, body_s, yaw, world_to_cam)
+    b = np_footprint(centre, wheel_s, yaw, world_to_cam)
+    return np.concatenate([np.minimum(a[:2], b[:2]), np.maximum(a[2:], b[2:])])
+
+
+def test_car_profile_projection_by_hand():
+    """The box 10 m ahead (bottom 1 m below the camera, near face at z = 8): the profile raises
+    only the footprint's bottom edge, to the nearer of the bumper underside (y = 0.75 at z = 8:
+    v = 286.875) and the wheels' ground contact (y = 1 at z = 8.9: v = 296.18)."""
+    field, centre, size = straight_ahead()
+    lanes = losses.ProjectionLanes(np.array([0]), np.zeros(1), np.eye(4)[None], np.zeros((1, 4)), K, IMAGE_BOUNDS)
+    x1, y1, x2, y2, valid = losses.projected_boxes(field.decode(), lanes, CarProfile(clearance=0.25, overhang=0.9))
+    got = np.array([values(v)[0] for v in (x1, y1, x2, y2)])
+    by_hand = [288.75, 202.5, 413.75, 240 + 500 * 1.0 / 8.9]
+    np.testing.assert_allclose(got, by_hand, atol=2e-3)
+    b = field.numpy_boxes()
+    np.testing.assert_allclose(got, np_profile_footprint(b["centres"][0], b["sizes"][0], 0.0, np.eye(4), 0.25, 0.9),
+                               atol=2e-4)
+    # a zero profile is the box's corners
+    zero = losses.projected_boxes(field.decode(), lanes, CarProfile(clearance=0.0, overhang=0.0))
+    plain = losses.projected_boxes(field.decode(), lanes)
+    assert [values(v)[0] for v in zero[:4]] == [values(v)[0] for v in plain[:4]]
+    # a camera below the bumpers (moved 1 m down: the box's bottom at y = 0): the body's underside
+    # (y = -0.25 at z = 8, v = 224.375) is now above the wheels' contact (y = 0 at z = 8.9, v = 240)
+    # and the top edge is the near face's (y = -1.6 at z = 8, v = 140)
+    low = np.eye(4)
+    low[1, 3] = -1.0
+    lanes = losses.ProjectionLanes(np.array([0]), np.zeros(1), low[None], np.zeros((1, 4)), K, IMAGE_BOUNDS)
+    got = losses.projected_boxes(field.decode(), lanes, CarProfile(clearance=0.25, overhang=0.9))
+    np.testing.assert_allclose([values(v)[0] for v in got[1:4:2]], [140.0, 240.0], atol=2e-3)
+
+
+def test_car_profile_parts_are_capped_on_small_boxes():
+    """A 1 m long, 0.5 m tall box: the overhang (0.9 m) and the clearance (0.25 m) are capped at
+    0.3 of the length and height, so the wheel box keeps 0.4 m and the body 0.35 m."""
+    field = field_of(np.array([[0.0, 0.5, 10.0]]), np.array([[1.0, 0.5, 1.0]]), np.zeros(1))
+    b = field.numpy_boxes()
+    lanes = losses.ProjectionLanes(np.array([0]), np.zeros(1), np.eye(4)[None], np.zeros((1, 4)), K, IMAGE_BOUNDS)
+    got = losses.projected_boxes(field.decode(), lanes, CarProfile(clearance=0.25, overhang=0.9))
+    size = b["sizes"][0]
+    expected = np_profile_footprint(b["centres"][0], size, 0.0, np.eye(4), min(0.25, 0.3 * size[1]),
+                                    min(0.9, 0.3 * size[2]))
+    np.testing.assert_allclose([values(v)[0] for v in got[:4]], expected, atol=2e-3)
+    assert bool(values(got[4])[0])
+
+
+def test_car_profile_rejects_negative_values():
+    with pytest.raises(ValueError, match="clearance and overhang"):
+        CarProfile(clearance=-0.1)
+
+
 @pytest.mark.parametrize("containment, excess", [(False, 0.0), (True, 0.0), (True, 0.25), (True, 1.0)])
 def test_projection_loss_by_hand(containment, excess):
     field, _, _ = straight_ahead()
@@ -250,14 +309,15 @@ def ad_and_central_differences(field, keys, loss, eps: dict) -> tuple[dict, dict
     return ad, fd
 
 
-def test_projection_loss_gradients_match_finite_differences():
+@pytest.mark.parametrize("profile", [None, CarProfile(clearance=0.25, overhang=0.9)])
+def test_projection_loss_gradients_match_finite_differences(profile):
     field, lanes = two_box_lanes()
     keys = ("box_centre", "box_dims", "box_yaw", "box_velocity")
     # steps: ~1 mm of centre, ~0.2 mm of half-size, ~0.2 mrad of yaw, 0.2 mm/frame of velocity
     # (~0.05-0.1 px: smaller than the pixel errors, so no Huber or corner switch in between)
     eps = {"box_centre": 1e-4, "box_dims": 5e-4, "box_yaw": 2e-4, "box_velocity": 2e-4}
     ad, fd = ad_and_central_differences(
-        field, keys, lambda dec: losses.projection_loss(dec, lanes, BETA, W_HUBER, W_DIOU), eps)
+        field, keys, lambda dec: losses.projection_loss(dec, lanes, BETA, W_HUBER, W_DIOU, profile=profile), eps)
     checked = 0
     for key in keys:
         for i in range(len(ad[key])):

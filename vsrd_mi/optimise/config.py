@@ -101,6 +101,40 @@ class LossWeights:
 
 
 @dataclass(frozen=True)
+class CarProfile:
+    """What the projection loss projects: the car a box bounds, not the box's 8 corners.
+
+    A car meets the ground only at its wheels, which sit ``overhang`` metres in from each end of
+    its box (a car's front and rear overhangs, axle to bumper, are 0.7-1.1 m), and the body
+    over the overhangs starts ``clearance`` metres above the ground (the bumpers' underside).
+    The box's bottom corners at the ends enclose empty space, so in every view that sees an end
+    of a car its mask's bottom is above its box's projected bottom: 1.5 px (median; 3-6 px at
+    10-20 m, 5 % of the box's projected height) on the synthetic cars (exact projection of the
+    ground-truth boxes, pitch included). The symmetric projection loss closes that gap by
+    pushing boxes away along the line of sight (parked cars ended 0.2-0.75 m too far) or
+    shortening them. The loss therefore projects two parts of each box (see
+    :func:`vsrd_mi.optimise.losses.projected_boxes`): the body above ``clearance`` and the
+    full height over the length less ``overhang`` at each end; the 2D box is their union's.
+    The values are typical of passenger cars, not fitted to the synthetic ones. Mean 3D IoU,
+    box corners / this profile (three fresh 4 parked + 2 moving sequences, every labelled frame):
+    parked 0.694 / 0.726, moving 0.612 / 0.645; bundled scene 0.668 / 0.690 and 0.639 / 0.659.
+    The car's other departures from its box (rounded corners, mirrors, roof) vary by model
+    and are left to the loss; ``overhang = clearance = 0`` projects the box corners (the paper).
+    """
+
+    clearance: float = 0.25
+    overhang: float = 0.9
+
+    @property
+    def enabled(self) -> bool:
+        return self.clearance > 0 or self.overhang > 0
+
+    def __post_init__(self) -> None:
+        if self.clearance < 0 or self.overhang < 0:
+            raise ValueError(f"CarProfile: clearance and overhang must be >= 0, got {self.clearance}, {self.overhang}")
+
+
+@dataclass(frozen=True)
 class LearningRates:
     """Adam learning rates per parameter group (REFERENCE §4), decayed exponentially to
     ``decay`` times their start over the whole run."""
@@ -168,6 +202,7 @@ class AutolabelConfig:
     eikonal_step: float = 0.02
     seed: int = 0
     weights: LossWeights = field(default_factory=LossWeights)
+    car_profile: CarProfile = field(default_factory=CarProfile)
     lr: LearningRates = field(default_factory=LearningRates)
     schedule: Schedule = field(default_factory=Schedule)
     early_stop: EarlyStop = field(default_factory=EarlyStop)
@@ -216,6 +251,7 @@ class AutolabelConfig:
     def from_dict(d: dict) -> "AutolabelConfig":
         d = dict(d)
         d["weights"] = LossWeights(**d.get("weights", {}))
+        d["car_profile"] = CarProfile(**d.get("car_profile", {}))
         d["lr"] = LearningRates(**d.get("lr", {}))
         d["schedule"] = Schedule(**d.get("schedule", {}))
         d["early_stop"] = EarlyStop(**d.get("early_stop", {}))

@@ -16,6 +16,11 @@ from ..geometry import boxes2d
 from ..geometry.boxes import CORNER_SIGNS
 from ..geometry.camera import NEAR_PLANE, footprint
 from ..geometry.xp import drjit_namespace
+from .config import CarProfile
+
+#: :func:`box_corners` takes at most this fraction of a box's length off each end, and raises its
+#: bottom by at most this fraction of its height (a car-profile part never degenerates).
+MAX_PART_FRACTION = 0.3
 
 
 def to_float(values) -> mi.Float:
@@ -71,8 +76,14 @@ class ProjectionLanes:
         self.bounds = tuple(float(b) for b in bounds)
 
 
-def box_corners(dec: DecodedBoxes, box: mi.UInt32, dt: mi.Float) -> list[tuple]:
-    """The 8 corners (optimisation frame, moved by ``dynamic * v * dt``) of boxes ``box``."""
+def box_corners(dec: DecodedBoxes, box: mi.UInt32, dt: mi.Float, shorten: float = 0.0,
+                raise_bottom: float = 0.0) -> list[tuple]:
+    """The 8 corners (optimisation frame, moved by ``dynamic * v * dt``) of boxes ``box``.
+
+    ``shorten`` and ``raise_bottom`` (metres) give the corners of a part of each box instead:
+    ``shorten`` off each end along the length, the bottom face raised by ``raise_bottom`` (the
+    optimisation frame's y points down), each capped at :data:`MAX_PART_FRACTION` of the extent.
+    """
 
     def g(a):
         return dr.gather(mi.Float, a, box)
@@ -80,6 +91,12 @@ def box_corners(dec: DecodedBoxes, box: mi.UInt32, dt: mi.Float) -> list[tuple]:
     m = g(dec.dynamic) * dt
     centre = [g(dec.centre[j]) + m * g(dec.velocity[j]) for j in range(3)]
     half = [g(h) for h in dec.half]
+    if shorten > 0:
+        half[2] = half[2] - dr.minimum(shorten, 2.0 * MAX_PART_FRACTION * half[2])
+    if raise_bottom > 0:
+        lift = 0.5 * dr.minimum(raise_bottom, 2.0 * MAX_PART_FRACTION * half[1])
+        half[1] = half[1] - lift
+        centre[1] = centre[1] - lift
     c, s = g(dec.cos), g(dec.sin)
     corners = []
     for sx, sy, sz in CORNER_SIGNS.tolist():  # Python floats: NumPy scalars would promote to Float64
@@ -88,18 +105,35 @@ def box_corners(dec: DecodedBoxes, box: mi.UInt32, dt: mi.Float) -> list[tuple]:
     return corners
 
 
-def projected_boxes(dec: DecodedBoxes, lanes: ProjectionLanes):
-    """Differentiable 2D footprints ``(x1, y1, x2, y2, valid)`` of the lanes' boxes."""
-    corners = box_corners(dec, lanes.box, lanes.dt)
+def _footprint(corners: list[tuple], lanes: ProjectionLanes):
     R, t = lanes.rot, lanes.trans
     cam = [tuple(R[i][0] * p[0] + R[i][1] * p[1] + R[i][2] * p[2] + t[i] for i in range(3))
            for p in corners]
     return footprint(cam, lanes.K, lanes.bounds, NEAR_PLANE, xp=drjit_namespace())
 
 
+def projected_boxes(dec: DecodedBoxes, lanes: ProjectionLanes, profile: CarProfile | None = None):
+    """Differentiable 2D footprints ``(x1, y1, x2, y2, valid)`` of the lanes' boxes.
+
+    Without a ``profile`` (or with a zero one) the footprint of the 8 box corners (the paper).
+    With one, the footprint of the car the box bounds, as two parts: the body above
+    ``profile.clearance`` over the full length, and the full height over the length less
+    ``profile.overhang`` at each end, where the wheels meet the ground (see
+    :class:`~vsrd_mi.optimise.config.CarProfile`). A car's mask box is the projection of the
+    car, not of its box: the box's bottom corners at the ends enclose empty space under the
+    bumpers, which project below the mask in every view that sees an end of the car.
+    """
+    if profile is None or not profile.enabled:
+        return _footprint(box_corners(dec, lanes.box, lanes.dt), lanes)
+    body = _footprint(box_corners(dec, lanes.box, lanes.dt, raise_bottom=profile.clearance), lanes)
+    wheels = _footprint(box_corners(dec, lanes.box, lanes.dt, shorten=profile.overhang), lanes)
+    return (dr.minimum(body[0], wheels[0]), dr.minimum(body[1], wheels[1]),
+            dr.maximum(body[2], wheels[2]), dr.maximum(body[3], wheels[3]), body[4] | wheels[4])
+
+
 def projection_loss(dec: DecodedBoxes, lanes: ProjectionLanes, beta: float,
                     w_huber: float, w_diou: float, containment: bool = False,
-                    excess: float = 0.0) -> mi.Float:
+                    excess: float = 0.0, profile: CarProfile | None = None) -> mi.Float:
     """Mean over lanes of ``w_huber * sum_4 Huber(e_i) + w_diou * (1 - DIoU)``.
 
     ``symmetric`` (the paper, ``containment=False``): ``e = pred - mask box`` per coordinate.
@@ -111,11 +145,11 @@ def projection_loss(dec: DecodedBoxes, lanes: ProjectionLanes, beta: float,
     mask's box, but not onto it (an object is not a box: its silhouette is smaller than its
     box's footprint), so the symmetric loss pulls boxes smaller -- and, for moving cars whose
     depth trades off against velocity, farther away; with ``excess < 1`` the mask boxes bound
-    the box from inside and ``excess`` only tightens it.
+    the box from inside and ``excess`` only tightens it. ``profile``: see :func:`projected_boxes`.
     """
     if lanes.count == 0:
         return mi.Float(0.0)
-    x1, y1, x2, y2, _ = projected_boxes(dec, lanes)
+    x1, y1, x2, y2, _ = projected_boxes(dec, lanes, profile)
     pred = (x1, y1, x2, y2)
     tgt = lanes.target
     if containment:

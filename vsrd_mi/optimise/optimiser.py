@@ -188,7 +188,7 @@ class BoxOptimiser:
             np.arange(self.n), np.zeros(self.n), np.repeat(self.world_to_cam[None, 0], self.n, 0),
             np.zeros((self.n, 4)), obs.K[0], self.bounds)
         with dr.suspend_grad():
-            x1, y1, x2, y2, _ = losses.projected_boxes(dec, target_lanes)
+            x1, y1, x2, y2, _ = losses.projected_boxes(dec, target_lanes, self.cfg.car_profile)
             pred = np.stack([np.array(v) for v in (x1, y1, x2, y2)], 1)
         masks = obs.boxes2d[0]
         cost = -boxes2d.diou_matrix(pred, np.nan_to_num(masks, nan=-1e4))
@@ -258,7 +258,7 @@ class BoxOptimiser:
             sdf_evals += it.last_stats.get("sdf_evals", 0)
             l_proj = losses.projection_loss(dec, self._lanes, w.huber_beta, w.projection_huber, w.projection_diou,
                                             containment=w.projection_mode == "containment",
-                                            excess=w.projection_excess)
+                                            excess=w.projection_excess, profile=cfg.car_profile)
             l_sil = losses.silhouette_loss(labels, targets, w.bce_eps)
             total = l_proj + w.silhouette * l_sil
             l_eik = l_init = mi.Float(0.0)
