@@ -90,6 +90,8 @@ GRID = (
     #: the size / yaw prior of the ``paper`` preset on the default (off there since it measured worse)
     BenchSetting("shape-prior", {"weights": {k: LONG_SCHEDULE_SHAPE_PRIOR for k in SHAPE_PRIOR_FIELDS}}),
     BenchSetting("containment", {"weights": {"projection_mode": "containment"}}),
+    #: the paper's projection of the 8 box corners instead of the car profile (``CarProfile``)
+    BenchSetting("box-corners", {"car_profile": {"clearance": 0.0, "overhang": 0.0}}),
     BenchSetting("paper", {}, paper=True),
     #: the paper's schedule, losses and residual field with the adaptive sampler: separates the
     #: sampler's share of the paper-vs-default difference from the schedule's
