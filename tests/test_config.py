@@ -4,8 +4,8 @@ import dataclasses
 
 import pytest
 
-from vsrd_mi.optimise.config import (LONG_SCHEDULE_SHAPE_PRIOR, AutolabelConfig, LossWeights, default_config,
-                                     paper_config)
+from vsrd_mi.optimise.config import (LONG_SCHEDULE_SHAPE_PRIOR, AutolabelConfig, CarProfile, LossWeights,
+                                     default_config, paper_config)
 
 
 def test_presets_differ_in_budget_and_the_long_schedules_shape_prior_only():
@@ -18,6 +18,7 @@ def test_presets_differ_in_budget_and_the_long_schedules_shape_prior_only():
     assert all(getattr(d.weights, k) == 0.0 for k in prior)  # the default runs without the prior
     assert all(getattr(p.weights, k) == LONG_SCHEDULE_SHAPE_PRIOR > 0 for k in prior)
     assert dataclasses.replace(p.weights, **{k: 0.0 for k in prior}) == d.weights  # nothing else differs
+    assert p.car_profile == d.car_profile == CarProfile() and d.car_profile.enabled
 
 
 def test_overrides_set_nested_and_top_level_fields():
@@ -30,6 +31,9 @@ def test_overrides_set_nested_and_top_level_fields():
     assert default_config().with_overrides(["weights.init=1"]).weights.init == 1.0
     assert default_config().weights.init_dynamic == LossWeights().init_dynamic
     assert AutolabelConfig.from_dict(cfg.to_dict()) == cfg
+    # the paper's box corners: a zero car profile, round-tripped through the dict form
+    corners = default_config().with_overrides(["car_profile.clearance=0", "car_profile.overhang=0"])
+    assert not corners.car_profile.enabled and AutolabelConfig.from_dict(corners.to_dict()) == corners
 
 
 @pytest.mark.parametrize("item, message", [
