@@ -52,10 +52,10 @@ def target_gaps(root: Path, frame: int) -> list[dict]:
     dec = opt.integrator.field.decode()
     target = np.stack([np.array(t) for t in lanes.target], 1)
     box = np.array(lanes.box)
-    cam_z = np.array(lanes.trans[2])  # camera-frame depth of the box centre: R row 2 . c + t_z
+    # camera-frame depth of each lane's box centre: (row 2 of R) . c + t_z
     centres = np.array([b.centre for b in boxes])
     rot_z = np.stack([np.array(lanes.rot[2][j]) for j in range(3)], 1)
-    depth = np.einsum("lj,lj->l", rot_z, centres[box]) + cam_z
+    depth = np.einsum("lj,lj->l", rot_z, centres[box]) + np.array(lanes.trans[2])
     bounds = np.array(lanes.bounds)
     proj = {}
     for name, profile in (("box", None), ("profile", cfg.car_profile)):

@@ -111,9 +111,9 @@ class CarProfile:
     The box's bottom corners at the ends enclose empty space, so in every view that sees an end
     of a car its mask's bottom is above its box's projected bottom: median 2.1 px over 366 views
     of six targets (3.7 px at 10-20 m, 8.5 px within 10 m; 5.5 % of the box's projected height;
-    ``benchmarks/footprint_gap.py``, exact projection of the ground-truth boxes). The symmetric projection loss closes that gap by
-    pushing boxes away along the line of sight (parked cars ended 0.2-0.75 m too far) or
-    shortening them. The loss therefore projects two parts of each box (see
+    ``benchmarks/footprint_gap.py``, exact projection of the ground-truth boxes). The symmetric
+    projection loss closes that gap by pushing boxes away along the line of sight (parked cars
+    ended 0.2-0.75 m too far) or shortening them. The loss therefore projects two parts of each box (see
     :func:`vsrd_mi.optimise.losses.projected_boxes`): the body above ``clearance`` and the
     full height over the length less ``overhang`` at each end; the 2D box is their union's
     (so ``clearance`` acts only together with a positive ``overhang``).

@@ -6,6 +6,8 @@ and bookkeeping around them live in :mod:`vsrd_mi.optimise.optimiser`.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import drjit as dr
 import mitsuba as mi
 import numpy as np
@@ -76,28 +78,41 @@ class ProjectionLanes:
         self.bounds = tuple(float(b) for b in bounds)
 
 
-def box_corners(dec: DecodedBoxes, box: mi.UInt32, dt: mi.Float, shorten: float = 0.0,
-                raise_bottom: float = 0.0) -> list[tuple]:
-    """The 8 corners (optimisation frame, moved by ``dynamic * v * dt``) of boxes ``box``.
+@dataclass(frozen=True)
+class LaneBoxes:
+    """Boxes gathered per lane (optimisation frame, moved by ``dynamic * v * dt``): centre and
+    half extents (3 arrays each) and the yaw's ``cos`` / ``sin``."""
+
+    centre: tuple
+    half: tuple
+    cos: mi.Float
+    sin: mi.Float
+
+    @staticmethod
+    def gather(dec: DecodedBoxes, box: mi.UInt32, dt: mi.Float) -> "LaneBoxes":
+        def g(a):
+            return dr.gather(mi.Float, a, box)
+
+        m = g(dec.dynamic) * dt
+        return LaneBoxes(tuple(g(dec.centre[j]) + m * g(dec.velocity[j]) for j in range(3)),
+                         tuple(g(h) for h in dec.half), g(dec.cos), g(dec.sin))
+
+
+def box_corners(boxes: LaneBoxes, shorten: float = 0.0, raise_bottom: float = 0.0) -> list[tuple]:
+    """The 8 corners of gathered ``boxes``.
 
     ``shorten`` and ``raise_bottom`` (metres) give the corners of a part of each box instead:
     ``shorten`` off each end along the length, the bottom face raised by ``raise_bottom`` (the
     optimisation frame's y points down), each capped at :data:`MAX_PART_FRACTION` of the extent.
     """
-
-    def g(a):
-        return dr.gather(mi.Float, a, box)
-
-    m = g(dec.dynamic) * dt
-    centre = [g(dec.centre[j]) + m * g(dec.velocity[j]) for j in range(3)]
-    half = [g(h) for h in dec.half]
+    centre, half = list(boxes.centre), list(boxes.half)
     if shorten > 0:
         half[2] = half[2] - dr.minimum(shorten, 2.0 * MAX_PART_FRACTION * half[2])
     if raise_bottom > 0:
         lift = 0.5 * dr.minimum(raise_bottom, 2.0 * MAX_PART_FRACTION * half[1])
         half[1] = half[1] - lift
         centre[1] = centre[1] - lift
-    c, s = g(dec.cos), g(dec.sin)
+    c, s = boxes.cos, boxes.sin
     corners = []
     for sx, sy, sz in CORNER_SIGNS.tolist():  # Python floats: NumPy scalars would promote to Float64
         lx, ly, lz = sx * half[0], sy * half[1], sz * half[2]
@@ -123,10 +138,11 @@ def projected_boxes(dec: DecodedBoxes, lanes: ProjectionLanes, profile: CarProfi
     car, not of its box: the box's bottom corners at the ends enclose empty space under the
     bumpers, which project below the mask in every view that sees an end of the car.
     """
+    boxes = LaneBoxes.gather(dec, lanes.box, lanes.dt)  # once: both parts are built from it
     if profile is None or not profile.enabled:
-        return _footprint(box_corners(dec, lanes.box, lanes.dt), lanes)
-    body = _footprint(box_corners(dec, lanes.box, lanes.dt, raise_bottom=profile.clearance), lanes)
-    wheels = _footprint(box_corners(dec, lanes.box, lanes.dt, shorten=profile.overhang), lanes)
+        return _footprint(box_corners(boxes), lanes)
+    body = _footprint(box_corners(boxes, raise_bottom=profile.clearance), lanes)
+    wheels = _footprint(box_corners(boxes, shorten=profile.overhang), lanes)
     return (dr.minimum(body[0], wheels[0]), dr.minimum(body[1], wheels[1]),
             dr.maximum(body[2], wheels[2]), dr.maximum(body[3], wheels[3]), body[4] | wheels[4])
 
