@@ -108,31 +108,47 @@ def frame_clouds(frame: StereoFrame, depth: np.ndarray, cfg: InitConfig) -> dict
 # Velocity and dynamic flag
 # --------------------------------------------------------------------------------------------
 
-def weighted_median(values: np.ndarray, weights: np.ndarray) -> float:
-    """The smallest value whose cumulative weight reaches half the total weight."""
-    order = np.argsort(values)
-    cum = np.cumsum(np.asarray(weights, float)[order])
-    return float(np.asarray(values)[order][np.searchsorted(cum, 0.5 * cum[-1])])
-
-
 def robust_weighted_mean(estimates: np.ndarray, weights: np.ndarray, mad_factor: float,
                          floor: float) -> tuple[np.ndarray, np.ndarray, float]:
     """Weighted mean of vector ``estimates`` (N, D) after dropping extreme ones.
 
-    The centre is the component-wise weighted median; an estimate is extreme when its distance
-    to it exceeds ``max(mad_factor * 1.4826 * MAD, floor)``. Returns (mean, kept mask, standard
-    error of the mean), the standard error being
+    The centre is the component-wise median; an estimate is extreme when its distance to it
+    exceeds ``max(mad_factor * 1.4826 * MAD, floor)``. Centre and MAD are unweighted: with
+    weighted ones, an estimate holding half the weight would be the centre with a MAD of 0 and
+    every other estimate beyond ``floor`` would be dropped, however well they agree. Returns
+    (mean, kept mask, standard error of the mean), the standard error being
     ``sqrt(sum w_i^2 |x_i - mean|^2) / sum w_i`` over the kept estimates (0 for a single one).
     """
-    med = np.array([weighted_median(estimates[:, k], weights) for k in range(estimates.shape[1])])
+    med = np.median(estimates, axis=0)
     dist = np.linalg.norm(estimates - med, axis=1)
-    mad = weighted_median(dist, weights)
+    mad = float(np.median(dist))
     keep = dist <= max(mad_factor * 1.4826 * mad, floor)
     w, x = weights[keep], estimates[keep]
     mean = np.average(x, axis=0, weights=w)
     sq = np.sum((x - mean) ** 2, axis=1)
     se = float(np.sqrt(np.sum(w ** 2 * sq)) / np.sum(w)) if len(w) > 1 else 0.0
     return mean, keep, se
+
+
+def effective_count(weights: np.ndarray) -> float:
+    """Kish's effective sample size ``(sum w)^2 / sum w^2`` (n for equal weights, 1 when one
+    weight dominates; 0 for none)."""
+    w = np.asarray(weights, dtype=float)
+    return float(w.sum() ** 2 / np.sum(w ** 2)) if len(w) and np.any(w) else 0.0
+
+
+def critical_value(significance: float, effective_pairs: float) -> float:
+    """Standard errors a mean must lie from zero to be significant at the one-sided level of
+    ``significance`` normal standard deviations, given that the standard error itself was
+    estimated from ``effective_pairs`` estimates: Student's t quantile with
+    ``effective_pairs - 1`` degrees of freedom (``significance`` itself for infinitely many,
+    infinite for one or fewer: a lone estimate shows no spread to test against)."""
+    if not np.isfinite(effective_pairs):
+        return float(significance)
+    if effective_pairs <= 1.0:
+        return float("inf")
+    from scipy.stats import norm, t
+    return float(t.ppf(norm.cdf(significance), effective_pairs - 1.0))
 
 
 def velocity_pairs(offsets: list[int], cfg: VelocityConfig) -> list[tuple[int, int]]:
@@ -155,6 +171,9 @@ class VelocityEstimate:
     n_pairs: int
     #: Standard error (m per frame index) of the mean over the pairs (0 for fewer than two).
     standard_error: float
+    #: Effective number of pairs behind the mean (:func:`effective_count` of the kept pairs'
+    #: weights): the standard error's own reliability.
+    effective_pairs: float = 0.0
 
 
 def estimate_velocity(clouds: dict[int, np.ndarray], cfg: VelocityConfig) -> VelocityEstimate:
@@ -163,7 +182,9 @@ def estimate_velocity(clouds: dict[int, np.ndarray], cfg: VelocityConfig) -> Vel
     Every frame pair of :func:`velocity_pairs` among the frames with more than ``cfg.min_points``
     points gives ``ICP translation / gap`` (:func:`~vsrd_mi.init.icp.register_translation`);
     extreme estimates are dropped and the rest averaged with weight ``min(M_a, M_b)`` (point
-    counts) by :func:`robust_weighted_mean`.
+    counts), times ``(b - a)^2`` with ``cfg.gap_weighted`` (a pair's translation error hardly
+    depends on its gap, so its velocity error falls as ``1 / gap``), by
+    :func:`robust_weighted_mean`.
     """
     usable = {o: c for o, c in clouds.items() if len(c) > cfg.min_points}
     pairs = velocity_pairs(list(usable), cfg)
@@ -181,10 +202,11 @@ def estimate_velocity(clouds: dict[int, np.ndarray], cfg: VelocityConfig) -> Vel
         if cfg.horizontal_only:
             v[_UP_AXIS] = 0.0
         estimates.append(v)
-        weights.append(min(len(usable[a]), len(usable[b])))
-    mean, keep, se = robust_weighted_mean(np.array(estimates), np.array(weights, float),
+        weights.append(min(len(usable[a]), len(usable[b])) * ((b - a) ** 2 if cfg.gap_weighted else 1))
+    weights = np.array(weights, float)
+    mean, keep, se = robust_weighted_mean(np.array(estimates), weights,
                                           cfg.outlier_mad_factor, cfg.outlier_floor)
-    return VelocityEstimate(mean, int(keep.sum()), se)
+    return VelocityEstimate(mean, int(keep.sum()), se, effective_count(weights[keep]))
 
 
 def speed_mps(velocity: np.ndarray, frame_rate_hz: float) -> float:
@@ -192,13 +214,19 @@ def speed_mps(velocity: np.ndarray, frame_rate_hz: float) -> float:
     return float(np.linalg.norm(velocity) * frame_rate_hz)
 
 
-def is_dynamic(velocity: np.ndarray, cfg: VelocityConfig, standard_error: float = 0.0) -> bool:
+def is_dynamic(velocity: np.ndarray, cfg: VelocityConfig, standard_error: float = 0.0,
+               effective_pairs: float = float("inf")) -> bool:
     """Whether an instance moves: its speed exceeds ``cfg.dynamic_speed_threshold`` (m/s) and its
-    velocity (m per frame index) is more than ``cfg.significance`` standard errors from zero
-    (the pair estimates agree on a motion rather than scatter around none)."""
+    velocity (m per frame index) is significantly away from zero: more than
+    :func:`critical_value` ``(cfg.significance, effective_pairs)`` standard errors (the pair
+    estimates agree on a motion rather than scatter around none). ``effective_pairs`` is
+    :attr:`VelocityEstimate.effective_pairs`; left infinite, the test is ``cfg.significance``
+    standard errors."""
     speed = float(np.linalg.norm(velocity))
-    return (speed * cfg.frame_rate_hz > cfg.dynamic_speed_threshold
-            and speed > cfg.significance * standard_error)
+    if speed * cfg.frame_rate_hz <= cfg.dynamic_speed_threshold:
+        return False
+    critical = critical_value(cfg.significance, effective_pairs)
+    return bool(np.isfinite(critical) and speed > critical * standard_error)
 
 
 # --------------------------------------------------------------------------------------------
@@ -442,7 +470,7 @@ def initialise_instance(instance_id: int, clouds: dict[int, np.ndarray],
         return None
     est = estimate_velocity({o: c for o, c in clouds.items() if o not in truncated}, cfg.velocity)
     velocity, n_pairs = est.velocity, est.n_pairs
-    dynamic = is_dynamic(velocity, cfg.velocity, est.standard_error)
+    dynamic = is_dynamic(velocity, cfg.velocity, est.standard_error, est.effective_pairs)
     motion = velocity if dynamic else np.zeros(3)
     ref = reference_offset(clouds, cfg.min_points_location)
     cloud_mean = to_target_time(clouds[ref], ref, motion).mean(axis=0)

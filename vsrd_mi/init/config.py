@@ -103,9 +103,19 @@ class VelocityConfig:
     #: all its points).
     icp_max_points: int = 400
     #: Each usable frame is registered with its next ``pair_neighbours`` usable frames in time
-    #: (within ``max_gap``): 1 = consecutive frames only; a large value = every pair. Two give
-    #: every frame two estimates at a fraction of the cost of all pairs.
-    pair_neighbours: int = 2
+    #: (within ``max_gap``): 1 = consecutive frames only; a large value = every pair. With
+    #: ``gap_weighted`` the longer pairs carry the estimate, so four neighbours give it a
+    #: baseline of up to four frame steps per frame at a fraction of the cost of all pairs.
+    pair_neighbours: int = 4
+    #: Weight each pair's estimate by ``gap^2`` as well as by its point count. A pair's ICP
+    #: translation error hardly depends on its gap (the two views see partly different
+    #: surfaces, and each frame's stereo cloud is off by its own decimetres), so its velocity
+    #: error falls as ``1 / gap`` and inverse-variance weighting favours the long pairs. With
+    #: two neighbours and point-count weights only, a parked car 26-58 m ahead came out at
+    #: 1.9-5.0 m/s from its consecutive pairs and was labelled moving (4 of 177 target
+    #: instances of the six 4 + 2 sequences and the bundled scene; 0 of 177 with four
+    #: neighbours and gap weights, moving-car speed error median 0.41 -> 0.29 m/s).
+    gap_weighted: bool = True
     #: Fraction of nearest-neighbour correspondences kept per ICP iteration (trimmed ICP: the two
     #: clouds see partly different surfaces, the worst-matching points have no partner).
     icp_trim_fraction: float = 0.8
