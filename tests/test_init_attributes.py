@@ -138,6 +138,27 @@ def test_dynamic_threshold_in_metres_per_second():
     assert not is_dynamic(np.array([0.0, 0.0, 0.3]), cfg, standard_error=0.16)
 
 
+def test_significance_takes_students_t_at_the_effective_pair_count():
+    from scipy.stats import norm
+    from vsrd_mi.init.attributes import critical_value, effective_count
+    assert effective_count(np.ones(4)) == pytest.approx(4.0)
+    assert effective_count(np.array([5.0, 0.0, 0.0])) == pytest.approx(1.0)
+    assert effective_count(np.array([3.0, 1.0])) == pytest.approx(1.6)
+    assert effective_count(np.array([])) == 0.0
+    assert critical_value(2.0, np.inf) == 2.0
+    assert critical_value(2.0, 1.0) == np.inf
+    # Student's t with 2 degrees of freedom in closed form: F(t) = 1/2 + t / (2 sqrt(2 + t^2))
+    a = 2.0 * norm.cdf(2.0) - 1.0
+    assert critical_value(2.0, 3.0) == pytest.approx(a * np.sqrt(2.0 / (1.0 - a * a)), rel=1e-6)
+    assert 2.0 < critical_value(2.0, 30.0) < critical_value(2.0, 10.0) < critical_value(2.0, 3.0)
+    cfg = VelocityConfig()
+    v = np.array([0.0, 0.0, 0.3])                                   # 3 m/s
+    assert is_dynamic(v, cfg, 0.1)                                  # 3 standard errors > 2
+    assert is_dynamic(v, cfg, 0.1, effective_pairs=30.0)
+    assert not is_dynamic(v, cfg, 0.1, effective_pairs=3.0)         # 3 < 4.53
+    assert not is_dynamic(v, cfg, 0.0, effective_pairs=1.0)         # one pair: no spread to test
+
+
 def test_velocity_standard_error_flags_scattered_estimates():
     """Pair estimates scattered around zero: a nonzero mean is not significant."""
     from vsrd_mi.init.attributes import robust_weighted_mean
@@ -149,6 +170,12 @@ def test_velocity_standard_error_flags_scattered_estimates():
     assert not is_dynamic(mean, VelocityConfig(), se)
     mean, keep, se = robust_weighted_mean(est[[0, 2, 4]], np.ones(3), 3.0, 0.05)
     assert is_dynamic(mean, VelocityConfig(), se)
+    # a dominant weight does not make its estimate the centre with a MAD of 0 (which would drop
+    # the agreeing estimates 0.07-0.1 away as extreme); the clear outlier still goes
+    agree = np.array([[0, 0, 1.0], [0, 0, 1.07], [0, 0, 1.1], [0, 0, 0.95], [0, 0, -0.5]])
+    mean, keep, se = robust_weighted_mean(agree, np.array([10.0, 1, 1, 1, 1]), 3.0, 0.05)
+    assert keep.tolist() == [True, True, True, True, False]
+    assert mean[2] == pytest.approx((10.0 + 1.07 + 1.1 + 0.95) / 13)
 
 
 def test_velocity_skips_small_clouds_and_large_gaps():

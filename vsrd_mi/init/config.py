@@ -143,10 +143,13 @@ class VelocityConfig:
     #: apparent speeds of a few tenths of m/s. 1.5 m/s (5.4 km/h, walking pace) sits above that
     #: noise and below the speed of cars in traffic; see ``benchmarks/init_accuracy.py``.
     dynamic_speed_threshold: float = 1.5
-    #: ... and the velocity must be this many standard errors (spread of the pair estimates,
-    #: :func:`vsrd_mi.init.attributes.robust_weighted_mean`) away from zero: at long range a
-    #: parked car's pair estimates scatter by metres per second around zero (per-frame depth
-    #: biases of stereo), a moving car's agree. Two is the usual ~95 % one-sided level.
+    #: ... and the velocity must be significantly away from zero: this many standard errors
+    #: (spread of the pair estimates, :func:`vsrd_mi.init.attributes.robust_weighted_mean`) when
+    #: many pairs agree, more when few carry the mean (Student's t at the same one-sided level,
+    #: with the kept pairs' effective count less one as degrees of freedom,
+    #: :func:`vsrd_mi.init.attributes.critical_value`; one pair alone never suffices). At long
+    #: range a parked car's pair estimates scatter by metres per second around zero (per-frame
+    #: depth biases of stereo), a moving car's agree. Two is the usual ~97.7 % one-sided level.
     significance: float = 2.0
 
 
