@@ -3,6 +3,8 @@ filters, footprint) and an end-to-end run on a small analytically ray-cast stere
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 import trimesh
@@ -390,6 +392,16 @@ def test_initialise_end_to_end_small_sequence(small_sequence, tmp_path):
     loaded = trimesh.load(tmp_path / "clouds.ply")
     assert len(loaded.vertices) == n == sum(len(c) for i in inits.values() for c in i.clouds.values())
     assert initialise(frames, InitConfig(depth_mode="none")) == {}
+    # the init CLI's JSON carries what decided each flag
+    from vsrd_mi.init.cli import init_result_json
+    doc = json.loads(json.dumps(init_result_json(0, inits)))
+    for iid, init in inits.items():
+        entry = doc["instances"][str(iid)]
+        assert entry["dynamic"] == init.dynamic
+        assert entry["velocity_effective_pairs"] == pytest.approx(init.velocity_effective_pairs)
+        assert entry["velocity_standard_error"] == pytest.approx(init.velocity_standard_error)
+    assert inits[3].velocity_effective_pairs > 2.0
+    assert np.linalg.norm(inits[3].velocity) > 5 * inits[3].velocity_standard_error
 
 
 def test_initialise_with_precomputed_depth(small_sequence):

@@ -47,6 +47,9 @@ class InstanceInit:
         cloud_mean: (3,) mean of the motion-compensated reference cloud (the paper's location,
             before the visible-surface correction).
         n_velocity_pairs: frame pairs whose ICP estimates were averaged into the velocity.
+        velocity_standard_error: standard error (m per frame index) of that average.
+        velocity_effective_pairs: effective number of pairs behind it (the dynamic flag's
+            significance test, :func:`is_dynamic`).
         truncated: frame offsets where the instance's mask touches the image border.
     """
 
@@ -61,6 +64,8 @@ class InstanceInit:
     reference_offset: int = 0
     cloud_mean: np.ndarray | None = None
     n_velocity_pairs: int = 0
+    velocity_standard_error: float = 0.0
+    velocity_effective_pairs: float = 0.0
     truncated: tuple[int, ...] = ()
 
     def to_box(self, default_size: tuple[float, float, float] = FootprintConfig.typical_size) -> Box3D:
@@ -485,6 +490,8 @@ def initialise_instance(instance_id: int, clouds: dict[int, np.ndarray],
     return InstanceInit(instance_id=instance_id, centre=centre, yaw=yaw, velocity=velocity,
                         dynamic=dynamic, size=size, n_points=len(clouds[ref]), clouds=clouds,
                         reference_offset=ref, cloud_mean=cloud_mean, n_velocity_pairs=n_pairs,
+                        velocity_standard_error=est.standard_error,
+                        velocity_effective_pairs=est.effective_pairs,
                         truncated=tuple(sorted(truncated)))
 
 

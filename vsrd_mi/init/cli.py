@@ -67,6 +67,8 @@ def init_result_json(target: int, inits: dict) -> dict:
                       "reference_offset": int(init.reference_offset),
                       "cloud_mean": np.asarray(init.cloud_mean).tolist(),
                       "n_velocity_pairs": int(init.n_velocity_pairs),
+                      "velocity_standard_error": float(init.velocity_standard_error),
+                      "velocity_effective_pairs": float(init.velocity_effective_pairs),
                       "points_per_frame": {str(o): len(c) for o, c in sorted(init.clouds.items())}})
         out["instances"][str(iid)] = entry
     return out
