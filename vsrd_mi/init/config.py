@@ -117,7 +117,9 @@ class VelocityConfig:
     #: scene. ``benchmarks/dynamic_flags.json`` (unweighted outlier centre throughout): two
     #: neighbours 2 wrong (1 with the t test of ``significance``), four neighbours 0; the gap
     #: weights then lower the moving cars' speed error median from 0.41 to 0.35 m/s and the
-    #: parked cars' apparent speed p90 from 0.64 to 0.28 m/s.
+    #: parked cars' apparent speed p90 from 0.64 to 0.28 m/s. REFERENCE §6 (and the authors'
+    #: code) weighs by point count only: ``gap_weighted=False`` with ``pair_neighbours=2`` is
+    #: that recipe (with this module's outlier rejection and significance test).
     gap_weighted: bool = True
     #: Fraction of nearest-neighbour correspondences kept per ICP iteration (trimmed ICP: the two
     #: clouds see partly different surfaces, the worst-matching points have no partner).
