@@ -70,10 +70,11 @@ def score_sequence(root: Path, cfg: InitConfig) -> list[dict]:
 
 
 def summarise(rows: list[dict]) -> dict:
+    """Per variant: wrong flags (both ways), speed error of moving cars, apparent speed of parked ones."""
+    moving = [r for r in rows if r["gt_dynamic"]]
+    parked = [r for r in rows if not r["gt_dynamic"]]
     out = {}
     for name in VARIANTS:
-        moving = [r for r in rows if r["gt_dynamic"]]
-        parked = [r for r in rows if not r["gt_dynamic"]]
         wrong = [r for r in rows if r[name]["dynamic"] != r["gt_dynamic"]]
         out[name] = {
             "wrong": len(wrong), "instances": len(rows),
