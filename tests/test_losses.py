@@ -208,9 +208,49 @@ def test_car_profile_parts_are_capped_on_small_boxes():
     assert bool(values(got[4])[0])
 
 
+def np_cut_corner_footprint(centre, size, yaw, world_to_cam, clearance, overhang, corner) -> np.ndarray:
+    """Independent profile footprint with cut plan corners: the 16 vertices of the octagonal
+    prism (the plan's corners cut ``corner`` along both sides, from ``clearance`` to the top)
+    and the 8 corners of the wheel box, projected, min/max."""
+    w, h, l = 0.5 * np.asarray(size, float)
+    plan = [(sx * w, sz * (l - corner)) for sx in (-1, 1) for sz in (-1, 1)]
+    plan += [(sx * (w - corner), sz * l) for sx in (-1, 1) for sz in (-1, 1)]
+    local = [(x, y, z) for x, z in plan for y in (-h, h - clearance)]
+    local += [(sx * w, sy * h, sz * (l - overhang)) for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)]
+    c, s = math.cos(yaw), math.sin(yaw)
+    R = np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])
+    cam = (np.asarray(centre) + np.array(local) @ R.T) @ world_to_cam[:3, :3].T + world_to_cam[:3, 3]
+    assert np.all(cam[:, 2] > 1.0)
+    uv = cam @ K.T
+    uv = uv[:, :2] / uv[:, 2:]
+    return np.array([uv[:, 0].min(), uv[:, 1].min(), uv[:, 0].max(), uv[:, 1].max()])
+
+
+@pytest.mark.parametrize("yaw", [0.0, 0.6, math.pi / 4, 2.0])
+def test_car_profile_cut_corners_project_the_octagonal_prism(yaw):
+    """``corner`` cuts the plan's corners (rounded bumpers): the footprint is the octagonal
+    prism's, which lies inside the box's; seen end-on (yaw 0) only the lengthwise cut has an
+    effect on the sides' extent at the near face, oblique views pull both sides in."""
+    centre, size = np.array([0.5, 0.2, 12.0]), np.array([1.8, 1.5, 4.4])
+    field = field_of(centre[None], size[None], np.array([yaw]))
+    b = field.numpy_boxes()
+    lanes = losses.ProjectionLanes(np.array([0]), np.zeros(1), np.eye(4)[None], np.zeros((1, 4)), K, IMAGE_BOUNDS)
+    profile = CarProfile(clearance=0.25, overhang=0.9, corner=0.3)
+    got = np.array([values(v)[0] for v in losses.projected_boxes(field.decode(), lanes, profile)[:4]])
+    expected = np_cut_corner_footprint(b["centres"][0], b["sizes"][0], float(b["yaws"][0]), np.eye(4), 0.25, 0.9, 0.3)
+    np.testing.assert_allclose(got, expected, atol=2e-3)
+    uncut = np.array([values(v)[0] for v in losses.projected_boxes(
+        field.decode(), lanes, CarProfile(clearance=0.25, overhang=0.9))[:4]])
+    assert got[0] >= uncut[0] - 1e-4 and got[2] <= uncut[2] + 1e-4
+    if yaw in (0.6, math.pi / 4):
+        assert got[0] > uncut[0] + 1.0 and got[2] < uncut[2] - 1.0  # oblique: both sides in by > 1 px
+
+
 def test_car_profile_rejects_negative_values():
-    with pytest.raises(ValueError, match="clearance and overhang"):
+    with pytest.raises(ValueError, match="clearance, overhang and corner"):
         CarProfile(clearance=-0.1)
+    with pytest.raises(ValueError, match="clearance, overhang and corner"):
+        CarProfile(corner=-0.1)
 
 
 @pytest.mark.parametrize("containment, excess", [(False, 0.0), (True, 0.0), (True, 0.25), (True, 1.0)])

@@ -98,16 +98,20 @@ class LaneBoxes:
                          tuple(g(h) for h in dec.half), g(dec.cos), g(dec.sin))
 
 
-def box_corners(boxes: LaneBoxes, shorten: float = 0.0, raise_bottom: float = 0.0) -> list[tuple]:
+def box_corners(boxes: LaneBoxes, shorten: float = 0.0, raise_bottom: float = 0.0,
+                narrow: float = 0.0) -> list[tuple]:
     """The 8 corners of gathered ``boxes``.
 
-    ``shorten`` and ``raise_bottom`` (metres) give the corners of a part of each box instead:
-    ``shorten`` off each end along the length, the bottom face raised by ``raise_bottom`` (the
-    optimisation frame's y points down), each capped at :data:`MAX_PART_FRACTION` of the extent.
+    ``shorten``, ``narrow`` and ``raise_bottom`` (metres) give the corners of a part of each box
+    instead: ``shorten`` off each end along the length, ``narrow`` off each side along the
+    width, the bottom face raised by ``raise_bottom`` (the optimisation frame's y points down),
+    each capped at :data:`MAX_PART_FRACTION` of the extent.
     """
     centre, half = list(boxes.centre), list(boxes.half)
     if shorten > 0:
         half[2] = half[2] - dr.minimum(shorten, 2.0 * MAX_PART_FRACTION * half[2])
+    if narrow > 0:
+        half[0] = half[0] - dr.minimum(narrow, 2.0 * MAX_PART_FRACTION * half[0])
     if raise_bottom > 0:
         lift = 0.5 * dr.minimum(raise_bottom, 2.0 * MAX_PART_FRACTION * half[1])
         half[1] = half[1] - lift
@@ -138,13 +142,21 @@ def projected_boxes(dec: DecodedBoxes, lanes: ProjectionLanes, profile: CarProfi
     car, not of its box: the box's bottom corners at the ends enclose empty space under the
     bumpers, which project below the mask in every view that sees an end of the car.
     """
-    boxes = LaneBoxes.gather(dec, lanes.box, lanes.dt)  # once: both parts are built from it
+    boxes = LaneBoxes.gather(dec, lanes.box, lanes.dt)  # once: every part is built from it
     if profile is None or not profile.enabled:
         return _footprint(box_corners(boxes), lanes)
-    body = _footprint(box_corners(boxes, raise_bottom=profile.clearance), lanes)
-    wheels = _footprint(box_corners(boxes, shorten=profile.overhang), lanes)
-    return (dr.minimum(body[0], wheels[0]), dr.minimum(body[1], wheels[1]),
-            dr.maximum(body[2], wheels[2]), dr.maximum(body[3], wheels[3]), body[4] | wheels[4])
+    if profile.corner > 0:  # the body's plan: an octagon, the union of two crossed boxes
+        parts = [box_corners(boxes, raise_bottom=profile.clearance, narrow=profile.corner),
+                 box_corners(boxes, raise_bottom=profile.clearance, shorten=profile.corner)]
+    else:
+        parts = [box_corners(boxes, raise_bottom=profile.clearance)]
+    parts.append(box_corners(boxes, shorten=profile.overhang))
+    x1, y1, x2, y2, valid = _footprint(parts[0], lanes)
+    for corners in parts[1:]:
+        p = _footprint(corners, lanes)
+        x1, y1 = dr.minimum(x1, p[0]), dr.minimum(y1, p[1])
+        x2, y2, valid = dr.maximum(x2, p[2]), dr.maximum(y2, p[3]), valid | p[4]
+    return x1, y1, x2, y2, valid
 
 
 def projection_loss(dec: DecodedBoxes, lanes: ProjectionLanes, beta: float,
