@@ -7,6 +7,10 @@ confidence (REFERENCE §7) and write, atomically,
 * ``labels/%010d.txt``: KITTI labels for the target and every frame of its group (boxes moved
   into each frame by pose and, for dynamic cars, by velocity), score = confidence;
 * ``boxes/%010d.json``: the full parameters and a loss-history summary.
+
+After the batch, ``vsrd-mi autolabel`` fuses each parked car's boxes over the targets that see
+it and rewrites those labels (:mod:`vsrd_mi.optimise.consensus`; ``--set consensus.enabled=false``
+keeps every target's own boxes).
 """
 
 from __future__ import annotations
@@ -23,12 +27,13 @@ from ..batch.tasks import TargetResult, TargetTask
 from ..data.kitti360 import Sequence, sequence_name
 from ..data.observations import Observations, load_observations
 from ..data.selection import SelectionConfig, select_targets, spec_for_frame
-from ..export.kitti_labels import label_from_box, write_labels
+from ..export.kitti_labels import write_labels
 from ..geometry.boxes import Box3D
 from ..geometry.boxes2d import iou_matrix
 from ..geometry.camera import box_to_2d
 from ..scene.initial import default_initial_boxes
 from .config import PRESETS, AutolabelConfig
+from .consensus import apply_consensus, labels_in_frame
 from .optimiser import BoxOptimiser
 
 
@@ -102,12 +107,7 @@ def process_target(task: TargetTask) -> TargetResult:
     outputs = []
     group = [int(obs.frames[f]) for f in np.flatnonzero(obs.in_group | (np.arange(obs.num_frames) == 0))]
     for f in np.flatnonzero(obs.in_group | (np.arange(obs.num_frames) == 0)):
-        labels = []
-        for b, c in zip(result.boxes, conf):
-            bc = box_in_frame(b, obs, f)
-            b2 = footprint_in_frame(b, obs, f)
-            if b2 is not None:
-                labels.append(label_from_box(bc, b2, score=float(c)))
+        labels = labels_in_frame(result.boxes, conf, obs.cam_to_opt[f], obs.K[f], obs.image_size, float(obs.dt[f]))
         rel = f"labels/{int(obs.frames[f]):010d}.txt"
         (out / "labels").mkdir(parents=True, exist_ok=True)
         write_labels(out / rel, labels)
@@ -171,6 +171,11 @@ def _cmd_autolabel(args: argparse.Namespace) -> int:
              for s in specs]
     summary = run_batch(tasks, process_target, **where)
     print(f"done {summary.done}, skipped {summary.skipped}, failed {summary.failed} of {summary.total}")
+    consensus = apply_consensus(Path(args.out) / seq.name, seq, cfg.consensus)
+    if consensus["enabled"]:
+        print(f"consensus: {len(consensus['fused'])} parked car(s) fused over {len(consensus['targets'])} "
+              f"target(s), {len(consensus['labels_rewritten'])} label file(s) rewritten"
+              + "".join(f"\n  left out: {s}" for s in consensus["skipped"]))
     return summary.exit_code()
 
 

@@ -1,0 +1,193 @@
+"""Sequence-level consensus of parked cars (vsrd_mi.optimise.consensus).
+
+The target results are built from the bundled scene's ground truth: every parked car's box is
+perturbed per target by offsets that cancel (+d, -d, 0, ...), so the fused box must be the ground
+truth itself -- an independent check of the frame chain (target optimisation frames -> reference
+frame -> every group frame's camera) and of the median / mean-axis fusion.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import vsrd_mi  # noqa: F401
+from vsrd_mi.data.kitti360 import Sequence
+from vsrd_mi.data.observations import opt_from_world
+from vsrd_mi.data.selection import SelectionConfig, select_targets
+from vsrd_mi.export.kitti_labels import box_from_label, parse_label_line, read_labels, write_labels
+from vsrd_mi.geometry.boxes import Box3D
+from vsrd_mi.optimise.config import AutolabelConfig, ConsensusConfig, default_config, paper_config
+from vsrd_mi.optimise.consensus import apply_consensus, axis_mean, fuse_boxes, labels_in_frame
+
+ROOT = Path(__file__).resolve().parents[1] / "scenes" / "kitti360-synth"
+#: Per-target perturbations of parked cars, cycled; every pair / triple of consecutive ones cancels
+#: in the median and the mean axis (see ``cancelling``).
+SHIFT_M, YAW_RAD, SCALE = 0.4, 0.15, 0.08
+
+
+def cancelling(k: int, n: int) -> float:
+    """Signed unit offset of the k-th of n contributors: +1, -1 (n even) or +1, -1, 0 (n odd)."""
+    if n % 2 and k == n - 1:
+        return 0.0
+    return 1.0 if k % 2 == 0 else -1.0
+
+
+@pytest.fixture(scope="module")
+def scene():
+    seq = Sequence(ROOT, 0)
+    specs = select_targets(seq, SelectionConfig())
+    assert len(specs) >= 3
+    return seq, specs
+
+
+def write_results(seq, specs, out: Path, moved: dict[tuple[int, int], float] | None = None) -> dict:
+    """Write ``boxes/%010d.json`` and the targets' own labels as :func:`process_target` does."""
+    seq_dir = out / seq.name
+    counts: dict[int, int] = {}
+    for spec in specs:
+        for iid in spec.instance_ids:
+            counts[iid] = counts.get(iid, 0) + 1
+    seen: dict[int, int] = {}
+    gt_world = {}
+    for spec in specs:
+        t = spec.target
+        T_opt = opt_from_world(seq.cam0_to_world(t))
+        cam_to_opt = T_opt @ seq.cam0_to_world(t)
+        gt = {b.instance_id: b for b in seq.ground_truth(t)}
+        boxes = []
+        for iid in spec.instance_ids:
+            b = gt[iid].transformed(cam_to_opt)
+            if not b.dynamic:
+                k = seen.get(iid, 0)
+                seen[iid] = k + 1
+                u = cancelling(k, counts[iid])
+                shift = np.array([SHIFT_M * u + (moved or {}).get((t, iid), 0.0), 0.0, -SHIFT_M * u])
+                b = replace(b, centre=b.centre + shift, yaw=b.yaw + YAW_RAD * u + (math.pi if k == 1 else 0.0),
+                            size=b.size * (1 + SCALE * u))
+                gt_world.setdefault(iid, gt[iid])
+            boxes.append(b)
+        conf = [0.5] * len(boxes)
+        for f in (t, *[g for g in spec.group if g != t]):
+            write_labels(seq_dir / f"labels/{f:010d}.txt",
+                         labels_in_frame(boxes, conf, T_opt @ seq.cam0_to_world(f), seq.calibration.K,
+                                         seq.calibration.image_size, float(f - t)))
+        (seq_dir / "boxes").mkdir(parents=True, exist_ok=True)
+        (seq_dir / f"boxes/{t:010d}.json").write_text(json.dumps({
+            "target": t, "group": sorted({t, *spec.group}),
+            "boxes": [{**b.to_dict(), "confidence": c} for b, c in zip(boxes, conf)]}))
+    return {iid: n for iid, n in counts.items()}
+
+
+def label_texts(seq_dir: Path) -> dict[str, str]:
+    return {p.name: p.read_text() for p in sorted((seq_dir / "labels").glob("*.txt"))}
+
+
+def test_axis_mean_has_period_pi():
+    assert axis_mean(np.array([0.1, 0.1 + math.pi])) == pytest.approx(0.1)
+    assert axis_mean(np.array([0.2, 0.0, math.pi - 0.1])) == pytest.approx(0.1 / 3, abs=1e-3)
+    # across the +-pi/2 seam, turned to the first heading
+    assert axis_mean(np.array([math.pi / 2 - 0.05, -math.pi / 2 + 0.05])) == pytest.approx(math.pi / 2)
+    assert axis_mean(np.array([-math.pi / 2 + 0.05, math.pi / 2 - 0.05])) == pytest.approx(-math.pi / 2)
+
+
+def test_fuse_boxes_median_gate_and_too_few():
+    a = Box3D([0.0, 1.0, 10.0], [1.8, 1.5, 4.0], 0.1, instance_id=26001)
+    b = Box3D([0.4, 1.0, 10.2], [2.0, 1.5, 4.4], 0.3, instance_id=26001)
+    c = Box3D([0.2, 1.0, 10.6], [1.6, 1.6, 4.2], 0.2 + math.pi, instance_id=26001)
+    far = Box3D([5.0, 1.0, 10.0], [1.8, 1.5, 4.0], 1.0, instance_id=26001)
+    box, inliers = fuse_boxes([a, b, c, far], gate=2.0)
+    assert inliers.tolist() == [True, True, True, False]
+    np.testing.assert_allclose(box.centre, [0.2, 1.0, 10.2])
+    np.testing.assert_allclose(box.size, [1.8, 1.5, 4.2])
+    assert box.yaw == pytest.approx(0.2, abs=1e-3) and not box.dynamic and box.instance_id == 26001
+    assert fuse_boxes([a, far], gate=2.0) is None  # the median is between them: no two inliers
+
+
+def test_consensus_fuses_parked_cars_to_the_ground_truth(scene, tmp_path):
+    seq, specs = scene
+    counts = write_results(seq, specs, tmp_path)
+    seq_dir = tmp_path / seq.name
+    before = label_texts(seq_dir)
+    report = apply_consensus(seq_dir, seq, ConsensusConfig())
+    fused = {c["instance_id"]: c for c in report["fused"]}
+    parked_multi = {iid for iid, n in counts.items() if n >= 2 and not any(
+        b.dynamic for b in seq.ground_truth(specs[0].target) if b.instance_id == iid)}
+    assert parked_multi and parked_multi <= set(fused)
+    for c in fused.values():
+        assert c["spread_m"] < 0.8 and 0.5 < c["confidence"] <= 1.0 and not c["outliers"]
+    assert json.loads((seq_dir / "consensus.json").read_text())["fused"] == report["fused"]
+    # every label of a fused car is its ground truth in that frame; the rest are unchanged
+    checked = 0
+    for spec in specs:
+        for f in sorted({spec.target, *spec.group}):
+            gt = [b for b in seq.ground_truth(f) if b.instance_id in spec.instance_ids]
+            for lab in read_labels(seq_dir / f"labels/{f:010d}.txt"):
+                box = box_from_label(lab)
+                g = min(gt, key=lambda b: np.linalg.norm(b.centre - box.centre))
+                if g.instance_id in fused and spec.target in fused[g.instance_id]["targets"]:
+                    np.testing.assert_allclose(box.centre, g.centre, atol=0.02)
+                    np.testing.assert_allclose(box.size, g.size, atol=0.02)
+                    assert abs(math.sin(box.yaw - g.yaw)) < 0.01
+                    assert lab.score == pytest.approx(fused[g.instance_id]["confidence"], abs=0.01)
+                    checked += 1
+    assert checked >= 10
+    after = label_texts(seq_dir)
+    assert after.keys() == before.keys() and after != before
+    # the moving cars' lines are unchanged
+    moving = 0
+    for name, text in before.items():
+        gt = seq.ground_truth(int(name[:10]))
+        for line in text.splitlines():
+            box = box_from_label(parse_label_line(line))
+            if min(gt, key=lambda b: np.linalg.norm(b.centre - box.centre)).dynamic:
+                assert line in after[name].splitlines()
+                moving += 1
+    assert moving >= 5
+
+
+def test_consensus_off_restores_the_targets_labels(scene, tmp_path):
+    seq, specs = scene
+    write_results(seq, specs, tmp_path)
+    seq_dir = tmp_path / seq.name
+    before = label_texts(seq_dir)
+    apply_consensus(seq_dir, seq, ConsensusConfig())
+    assert label_texts(seq_dir) != before
+    report = apply_consensus(seq_dir, seq, replace(ConsensusConfig(), enabled=False))
+    assert report["fused"] == [] and report["labels_rewritten"]
+    assert label_texts(seq_dir) == before
+    # nothing fused before: nothing rewritten
+    assert apply_consensus(seq_dir, seq, replace(ConsensusConfig(), enabled=False))["labels_rewritten"] == []
+
+
+def test_consensus_gate_and_damaged_results(scene, tmp_path):
+    seq, specs = scene
+    t0 = specs[0].target
+    kept = specs[:-1]  # the last target's result is damaged below
+    parked = [b.instance_id for b in seq.ground_truth(t0) if not b.dynamic and b.instance_id in specs[0].instance_ids
+              and sum(b.instance_id in s.instance_ids for s in kept) >= 3]
+    assert parked
+    moved = {(t0, parked[0]): 6.0}  # this target's box of one car is 6 m off
+    write_results(seq, specs, tmp_path, moved=moved)
+    seq_dir = tmp_path / seq.name
+    bad = seq_dir / f"boxes/{specs[-1].target:010d}.json"
+    bad.write_text('{"target": 1, "boxes": [')
+    report = apply_consensus(seq_dir, seq, ConsensusConfig())
+    assert len(report["skipped"]) == 1 and str(bad) in report["skipped"][0] and "unreadable" in report["skipped"][0]
+    assert specs[-1].target not in report["targets"]
+    car = next(c for c in report["fused"] if c["instance_id"] == parked[0])
+    assert t0 in car["outliers"] and t0 not in car["targets"]
+
+
+def test_consensus_config():
+    assert default_config().consensus.enabled and paper_config().consensus.enabled
+    cfg = default_config().with_overrides(["consensus.enabled=false", "consensus.gate=1.5"])
+    assert not cfg.consensus.enabled and cfg.consensus.gate == 1.5
+    assert AutolabelConfig.from_dict(cfg.to_dict()) == cfg
+    with pytest.raises(ValueError, match="min_targets"):
+        ConsensusConfig(min_targets=1)

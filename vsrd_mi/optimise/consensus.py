@@ -1,0 +1,229 @@
+"""Sequence-level consensus of parked cars (not in the paper).
+
+Each target frame is optimised on its own, so a parked car seen by several targets gets one box
+per target, and those boxes differ by each target's own error: the same car 30 m ahead came out
+1 degree off in yaw in one target and 16 in the next (synthetic seed 4404). A parked car is one
+rigid object for the whole sequence, so after every target is done the boxes of each parked
+instance (KITTI-360's instance ids are global per sequence) are brought into one gravity-aligned
+frame and fused:
+
+* contributors: the boxes of instance ``i`` labelled parked, one per target, expressed in the
+  optimisation frame of the run's first target (``T_ref @ inv(T_t)``; every optimisation frame
+  is gravity-aligned, so this is a rotation about the vertical and a translation);
+* inliers: contributors whose centre lies within ``gate`` metres of the contributors' median
+  centre (a car that was parked in two places, or one target's wrong box, is not averaged in);
+* the fused box: component-wise median of the inliers' centres and sizes, and their mean axis
+  ``yaw = arg(sum_k exp(2 i yaw_k)) / 2`` (period pi: a box turned end for end is the same box),
+  with the sign of the first inlier's heading.
+
+The fused box replaces every inlier's box in the labels of that inlier's group; its score is the
+confidence of REFERENCE §7 for the instance, recomputed over all those groups' frames (mean 2D
+IoU of the projected box and the instance's mask box, 0 where the instance has no mask). Moving
+cars, and parked cars seen by fewer than ``min_targets`` targets, keep their target's box. The
+per-target results (``boxes/%010d.json``) are never changed, so the step can be rerun at any
+time; ``consensus.json`` records what was fused.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..batch.atomic import atomic_write_json
+from ..data.kitti360 import Sequence
+from ..data.masks import tight_box
+from ..data.observations import opt_from_world
+from ..errors import DataError
+from ..export.kitti_labels import KittiLabel, label_from_box, write_labels
+from ..geometry.boxes import Box3D
+from ..geometry.boxes2d import iou_matrix
+from ..geometry.camera import box_to_2d
+from .config import ConsensusConfig
+
+
+@dataclass(frozen=True)
+class TargetBoxes:
+    """One target's optimised boxes as written to ``boxes/%010d.json``."""
+
+    target: int
+    #: Frames labelled from this target (the target and its group).
+    group: tuple[int, ...]
+    #: Boxes in the target's optimisation frame (:func:`vsrd_mi.data.observations.opt_from_world`).
+    boxes: tuple[Box3D, ...]
+    confidences: tuple[float, ...]
+
+    @staticmethod
+    def read(path: Path) -> "TargetBoxes":
+        """Parse ``path``; a damaged file raises :class:`DataError` naming it."""
+        try:
+            d = json.loads(Path(path).read_text())
+            boxes = tuple(Box3D.from_dict(b) for b in d["boxes"])
+            return TargetBoxes(int(d["target"]), tuple(int(f) for f in d["group"]), boxes,
+                               tuple(float(b["confidence"]) for b in d["boxes"]))
+        except (OSError, ValueError, KeyError, TypeError) as exc:
+            raise DataError(path, f"unreadable target result: {exc}") from exc
+
+
+@dataclass(frozen=True)
+class FusedCar:
+    """A parked car's consensus box (in the reference target's optimisation frame)."""
+
+    instance_id: int
+    box: Box3D
+    #: Targets whose box was fused (inliers) and those left out by the gate.
+    targets: tuple[int, ...]
+    outliers: tuple[int, ...]
+    #: Largest distance (m) of an inlier's centre from the fused centre.
+    spread: float
+    confidence: float = float("nan")
+
+    def to_dict(self) -> dict:
+        return {"instance_id": self.instance_id, "box": self.box.to_dict(), "targets": list(self.targets),
+                "outliers": list(self.outliers), "spread_m": self.spread, "confidence": self.confidence}
+
+
+def axis_mean(yaws: np.ndarray) -> float:
+    """Mean orientation of period pi, ``arg(sum exp(2 i yaw)) / 2``, turned to point within 90
+    degrees of ``yaws[0]``'s heading."""
+    yaws = np.asarray(yaws, dtype=np.float64)
+    mean = 0.5 * math.atan2(np.sin(2 * yaws).sum(), np.cos(2 * yaws).sum())
+    if math.cos(mean - yaws[0]) < 0:
+        mean += math.pi
+    return math.atan2(math.sin(mean), math.cos(mean))
+
+
+def fuse_boxes(boxes: list[Box3D], gate: float) -> tuple[Box3D, np.ndarray] | None:
+    """Consensus of one parked car's boxes (one frame): see the module docstring.
+
+    Returns the fused box and the inlier mask, or None when fewer than two boxes are inliers.
+    """
+    centres = np.array([b.centre for b in boxes])
+    inliers = np.linalg.norm(centres - np.median(centres, axis=0), axis=1) <= gate
+    if inliers.sum() < 2:
+        return None
+    kept = [b for b, k in zip(boxes, inliers) if k]
+    fused = Box3D(centre=np.median([b.centre for b in kept], axis=0), size=np.median([b.size for b in kept], axis=0),
+                  yaw=axis_mean(np.array([b.yaw for b in kept])), instance_id=kept[0].instance_id)
+    return fused, inliers
+
+
+def fuse_parked_cars(results: list[TargetBoxes], to_reference: dict[int, np.ndarray],
+                     cfg: ConsensusConfig) -> list[FusedCar]:
+    """Fuse every parked instance seen by at least ``cfg.min_targets`` targets.
+
+    ``to_reference[t]`` maps target ``t``'s optimisation frame to the reference frame (4x4).
+    """
+    seen: dict[int, list[tuple[int, Box3D]]] = {}
+    for r in results:
+        for b in r.boxes:
+            if not b.dynamic:
+                seen.setdefault(b.instance_id, []).append((r.target, b.transformed(to_reference[r.target])))
+    fused = []
+    for iid, items in sorted(seen.items()):
+        if len(items) < max(cfg.min_targets, 2):
+            continue
+        out = fuse_boxes([b for _, b in items], cfg.gate)
+        if out is None or out[1].sum() < cfg.min_targets:
+            continue
+        box, inliers = out
+        targets = tuple(t for (t, _), k in zip(items, inliers) if k)
+        spread = float(max(np.linalg.norm(b.centre - box.centre) for (_, b), k in zip(items, inliers) if k))
+        fused.append(FusedCar(iid, box, targets, tuple(t for (t, _), k in zip(items, inliers) if not k), spread))
+    return fused
+
+
+def labels_in_frame(boxes: list[Box3D], scores: list[float], cam_to_opt: np.ndarray, K: np.ndarray,
+                    image_size: tuple[int, int], dt: float) -> list[KittiLabel]:
+    """KITTI labels of ``boxes`` (optimisation frame, target time) in a frame whose camera is
+    ``cam_to_opt`` and time is ``dt`` frames after the target's: each box moved by its velocity
+    (dynamic ones), put into the camera, with the exact 2D projection through the full pose; boxes
+    that project outside the image get no label."""
+    world_to_cam = np.linalg.inv(cam_to_opt)
+    labels = []
+    for b, score in zip(boxes, scores):
+        b2 = box_to_2d(b, K, world_to_cam=world_to_cam, image_size=image_size, dt=dt)
+        if b2 is not None:
+            labels.append(label_from_box(b.at_offset(dt).transformed(world_to_cam), b2, score=float(score)))
+    return labels
+
+
+def mask_confidence(box: Box3D, seq: Sequence, frames: list[int], reference: np.ndarray) -> float:
+    """REFERENCE §7's confidence of one parked box with a known instance id: mean over ``frames``
+    of the 2D IoU of its projection and the instance's mask box (0 without either).
+    ``reference`` maps the world to the box's frame."""
+    ious = []
+    size = seq.calibration.image_size
+    for f in frames:
+        proj = box_to_2d(box, seq.calibration.K, world_to_cam=np.linalg.inv(reference @ seq.cam0_to_world(f)),
+                         image_size=size)
+        mask = tight_box(seq.instance_map(f) == box.instance_id)
+        ious.append(0.0 if proj is None or mask is None else float(iou_matrix(proj[None], mask[None])[0, 0]))
+    return float(np.mean(ious)) if ious else 0.0
+
+
+def apply_consensus(seq_dir: str | Path, seq: Sequence, cfg: ConsensusConfig) -> dict:
+    """Fuse the parked cars of every finished target under ``seq_dir`` and rewrite the labels of
+    the groups they appear in (atomically); write ``seq_dir/consensus.json``. Returns its content.
+
+    With ``cfg.enabled`` false, groups an earlier consensus rewrote get their targets' own
+    boxes back. Damaged target results are reported (``skipped``) and left out, never fatal.
+    """
+    seq_dir = Path(seq_dir)
+    results, skipped = [], []
+    for path in sorted((seq_dir / "boxes").glob("*.json")):
+        try:
+            results.append(TargetBoxes.read(path))
+        except DataError as exc:
+            skipped.append(str(exc))
+    report: dict = {"enabled": cfg.enabled, "targets": [r.target for r in results], "skipped": skipped,
+                    "reference_target": results[0].target if results else None, "fused": [], "labels_rewritten": []}
+    previous = _previously_fused(seq_dir / "consensus.json")
+    if not results:
+        atomic_write_json(seq_dir / "consensus.json", report)
+        return report
+    opt = {r.target: opt_from_world(seq.cam0_to_world(r.target)) for r in results}
+    to_ref = {t: opt[results[0].target] @ np.linalg.inv(T) for t, T in opt.items()}
+    fused = fuse_parked_cars(results, to_ref, cfg) if cfg.enabled else []
+    group_of = {r.target: r.group for r in results}
+    fused = [FusedCar(c.instance_id, c.box, c.targets, c.outliers, c.spread,
+                      mask_confidence(c.box, seq, sorted({f for t in c.targets for f in group_of[t]}),
+                                      opt[results[0].target]))
+             for c in fused]
+    by_target: dict[int, dict[int, FusedCar]] = {}
+    for c in fused:
+        for t in c.targets:
+            by_target.setdefault(t, {})[c.instance_id] = c
+    K, size = seq.calibration.K, seq.calibration.image_size
+    for r in results:
+        mine = by_target.get(r.target, {})
+        if not mine and previous is not None and r.target not in previous:  # still the target's own
+            continue
+        from_ref = np.linalg.inv(to_ref[r.target])
+        boxes, scores = [], []
+        for b, score in zip(r.boxes, r.confidences):
+            c = mine.get(b.instance_id) if not b.dynamic else None
+            boxes.append(b if c is None else c.box.transformed(from_ref))
+            scores.append(score if c is None else c.confidence)
+        for f in r.group:
+            cam_to_opt = opt[r.target] @ seq.cam0_to_world(f)
+            rel = f"labels/{f:010d}.txt"
+            write_labels(seq_dir / rel, labels_in_frame(boxes, scores, cam_to_opt, K, size, float(f - r.target)))
+            report["labels_rewritten"].append(rel)
+    report["fused"] = [c.to_dict() for c in fused]
+    atomic_write_json(seq_dir / "consensus.json", report)
+    return report
+
+
+def _previously_fused(path: Path) -> set[int] | None:
+    """Targets whose labels an earlier consensus rewrote (they are rewritten again, fused or not);
+    None (all of them) when the record is damaged."""
+    if not path.is_file():
+        return set()
+    try:
+        return {int(t) for car in json.loads(path.read_text()).get("fused", []) for t in car["targets"]}
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+        return None
