@@ -191,3 +191,28 @@ def test_consensus_config():
     assert AutolabelConfig.from_dict(cfg.to_dict()) == cfg
     with pytest.raises(ValueError, match="min_targets"):
         ConsensusConfig(min_targets=1)
+
+
+def test_autolabel_cli_applies_the_consensus_after_its_targets(scene, tmp_path, monkeypatch, capsys):
+    """``vsrd-mi autolabel`` runs the consensus after the batch (the batch itself replaced by
+    writing the ground-truth-derived results); the per-target tasks do not carry its settings,
+    so changing them reruns no target."""
+    from vsrd_mi.batch import runner
+    from vsrd_mi.batch.runner import BatchSummary
+    from vsrd_mi.cli import main
+
+    seq, specs = scene
+    seen_tasks = []
+
+    def fake_batch(tasks, process, **kwargs):
+        seen_tasks.extend(tasks)
+        write_results(seq, specs, tmp_path)
+        return BatchSummary(done=len(tasks))
+
+    monkeypatch.setattr(runner, "run_batch", fake_batch)
+    assert main(["autolabel", str(ROOT), "--sequence", "0", "--out", str(tmp_path), "--no-progress",
+                 "--set", "consensus.gate=1.5"]) == 0
+    assert seen_tasks and all("consensus" not in t.config for t in seen_tasks)
+    report = json.loads((tmp_path / seq.name / "consensus.json").read_text())
+    assert report["config"]["gate"] == 1.5 and report["fused"]
+    assert f"consensus: {len(report['fused'])} parked car(s) fused over {len(specs)} target(s)" in capsys.readouterr().out

@@ -165,9 +165,11 @@ def _cmd_autolabel(args: argparse.Namespace) -> int:
         return 1
     print(f"{seq.name}: {len(specs)} target frame(s)" + "".join(
         f"\n  target {s.target}: {len(s.sources)} sources" + (f" ({s.note})" if s.note else "") for s in specs))
+    # the consensus is sequence-level: changing it must not rerun finished targets
+    target_cfg = {k: v for k, v in cfg.to_dict().items() if k != "consensus"}
     tasks = [TargetTask(root=str(Path(args.root).resolve()), sequence=seq.name, frame=s.target,
                         output_dir=str(Path(args.out).resolve()),
-                        config={**cfg.to_dict(), **({"vis": True} if args.vis else {})}, seed=args.seed)
+                        config={**target_cfg, **({"vis": True} if args.vis else {})}, seed=args.seed)
              for s in specs]
     summary = run_batch(tasks, process_target, **where)
     print(f"done {summary.done}, skipped {summary.skipped}, failed {summary.failed} of {summary.total}")

@@ -26,6 +26,7 @@ time; ``consensus.json`` records what was fused.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 from dataclasses import dataclass
@@ -179,7 +180,7 @@ def apply_consensus(seq_dir: str | Path, seq: Sequence, cfg: ConsensusConfig) ->
             results.append(TargetBoxes.read(path))
         except DataError as exc:
             skipped.append(str(exc))
-    report: dict = {"enabled": cfg.enabled, "targets": [r.target for r in results], "skipped": skipped,
+    report: dict = {"enabled": cfg.enabled, "config": dataclasses.asdict(cfg), "targets": [r.target for r in results], "skipped": skipped,
                     "reference_target": results[0].target if results else None, "fused": [], "labels_rewritten": []}
     previous = _previously_fused(seq_dir / "consensus.json")
     if not results:
