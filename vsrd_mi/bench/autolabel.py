@@ -91,7 +91,9 @@ GRID = (
     BenchSetting("shape-prior", {"weights": {k: LONG_SCHEDULE_SHAPE_PRIOR for k in SHAPE_PRIOR_FIELDS}}),
     BenchSetting("containment", {"weights": {"projection_mode": "containment"}}),
     #: the paper's projection of the 8 box corners instead of the car profile (``CarProfile``)
-    BenchSetting("box-corners", {"car_profile": {"clearance": 0.0, "overhang": 0.0}}),
+    BenchSetting("box-corners", {"car_profile": {"clearance": 0.0, "overhang": 0.0, "corner": 0.0}}),
+    #: the car profile without its cut plan corners (``CarProfile.corner``)
+    BenchSetting("square-corners", {"car_profile": {"corner": 0.0}}),
     #: every target's own boxes in the labels (no sequence-level consensus of parked cars)
     BenchSetting("no-consensus", {"consensus": {"enabled": False}}),
     BenchSetting("paper", {}, paper=True),

@@ -135,10 +135,11 @@ def projected_boxes(dec: DecodedBoxes, lanes: ProjectionLanes, profile: CarProfi
     """Differentiable 2D footprints ``(x1, y1, x2, y2, valid)`` of the lanes' boxes.
 
     Without a ``profile`` (or with a zero one) the footprint of the 8 box corners (the paper).
-    With one, the footprint of the car the box bounds, as two parts: the body above
-    ``profile.clearance`` over the full length, and the full height over the length less
-    ``profile.overhang`` at each end, where the wheels meet the ground (see
-    :class:`~vsrd_mi.optimise.config.CarProfile`). A car's mask box is the projection of the
+    With one, the footprint of the car the box bounds, as parts: the body above
+    ``profile.clearance`` over the full length, its plan's corners cut by ``profile.corner``
+    (two crossed boxes, one ``corner`` narrower on each side, one ``corner`` shorter at each
+    end), and the full height over the length less ``profile.overhang`` at each end, where the
+    wheels meet the ground (see :class:`~vsrd_mi.optimise.config.CarProfile`). A car's mask box is the projection of the
     car, not of its box: the box's bottom corners at the ends enclose empty space under the
     bumpers, which project below the mask in every view that sees an end of the car.
     """
@@ -150,7 +151,8 @@ def projected_boxes(dec: DecodedBoxes, lanes: ProjectionLanes, profile: CarProfi
                  box_corners(boxes, raise_bottom=profile.clearance, shorten=profile.corner)]
     else:
         parts = [box_corners(boxes, raise_bottom=profile.clearance)]
-    parts.append(box_corners(boxes, shorten=profile.overhang))
+    if profile.clearance > 0:  # below the bumpers only the wheels, between the overhangs
+        parts.append(box_corners(boxes, shorten=profile.overhang))
     x1, y1, x2, y2, valid = _footprint(parts[0], lanes)
     for corners in parts[1:]:
         p = _footprint(corners, lanes)
