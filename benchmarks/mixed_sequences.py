@@ -5,7 +5,8 @@ with 4+ parked and 2+ moving cars) was measured on the bundled scene only, one d
 and placements. This script generates ``--seeds`` more such sequences with the data layer's
 generator (seeds fixed here before any was run, not picked by result: 4401-4403 first, 4404-4406
 added as fresh validation for the car profile, chosen on the first three), autolabels every target
-frame of each with ``vsrd-mi autolabel`` (default preset, or ``--set`` overrides) and evaluates
+frame of each with ``vsrd-mi autolabel`` (default preset, with its consensus of parked cars over
+the sequence, or ``--set`` overrides) and evaluates
 every labelled frame (the targets and their groups) with the evaluator, as the README's bundled
 scene figures are. Finished targets are skipped on rerun.
 
