@@ -216,3 +216,28 @@ def test_autolabel_cli_applies_the_consensus_after_its_targets(scene, tmp_path, 
     report = json.loads((tmp_path / seq.name / "consensus.json").read_text())
     assert report["config"]["gate"] == 1.5 and report["fused"]
     assert f"consensus: {len(report['fused'])} parked car(s) fused over {len(specs)} target(s)" in capsys.readouterr().out
+
+
+def test_autolabel_cli_keeps_the_targets_labels_when_the_consensus_fails(scene, tmp_path, monkeypatch, capsys):
+    """A consensus that cannot read its input is a warning: the batch's labels stay, exit code 0."""
+    from vsrd_mi.batch import runner
+    from vsrd_mi.batch.runner import BatchSummary
+    from vsrd_mi.cli import main
+    from vsrd_mi.errors import DataError
+    from vsrd_mi.optimise import autolabel
+
+    seq, specs = scene
+
+    def fake_batch(tasks, process, **kwargs):
+        write_results(seq, specs, tmp_path)
+        return BatchSummary(done=len(tasks))
+
+    def broken(seq_dir, *args):
+        raise DataError(Path(seq_dir) / "poses.txt", "NaN in the pose of frame 3")
+
+    monkeypatch.setattr(runner, "run_batch", fake_batch)
+    monkeypatch.setattr(autolabel, "apply_consensus", broken)
+    assert main(["autolabel", str(ROOT), "--sequence", "0", "--out", str(tmp_path), "--no-progress"]) == 0
+    err = capsys.readouterr().err
+    assert "consensus of parked cars skipped" in err and "NaN in the pose of frame 3" in err
+    assert label_texts(tmp_path / seq.name) and not (tmp_path / seq.name / "consensus.json").exists()

@@ -27,6 +27,7 @@ from ..batch.tasks import TargetResult, TargetTask
 from ..data.kitti360 import Sequence, sequence_name
 from ..data.observations import Observations, load_observations
 from ..data.selection import SelectionConfig, select_targets, spec_for_frame
+from ..errors import DataError
 from ..export.kitti_labels import write_labels
 from ..geometry.boxes import Box3D
 from ..geometry.boxes2d import iou_matrix
@@ -173,7 +174,11 @@ def _cmd_autolabel(args: argparse.Namespace) -> int:
              for s in specs]
     summary = run_batch(tasks, process_target, **where)
     print(f"done {summary.done}, skipped {summary.skipped}, failed {summary.failed} of {summary.total}")
-    consensus = apply_consensus(Path(args.out) / seq.name, seq, cfg.consensus)
+    try:
+        consensus = apply_consensus(Path(args.out) / seq.name, seq, cfg.consensus)
+    except (DataError, OSError) as exc:  # the targets' own labels stay as written
+        print(f"vsrd-mi autolabel: consensus of parked cars skipped: {exc}", file=sys.stderr)
+        return summary.exit_code()
     if consensus["enabled"]:
         print(f"consensus: {len(consensus['fused'])} parked car(s) fused over {len(consensus['targets'])} "
               f"target(s), {len(consensus['labels_rewritten'])} label file(s) rewritten"
