@@ -307,6 +307,8 @@ def paper_config() -> AutolabelConfig:
     the size / yaw prior, which 3000 steps need (``LossWeights.init_size``), and the projection
     loss projects the default's :class:`CarProfile` (the paper projects the box's corners:
     ``--set car_profile.clearance=0 --set car_profile.overhang=0 --set car_profile.corner=0``).
+    The sequence-level consensus of parked cars (:class:`ConsensusConfig`, not in the paper)
+    runs after the targets in both presets (``--set consensus.enabled=false``).
     """
     weights = LossWeights().with_shape_prior(LONG_SCHEDULE_SHAPE_PRIOR)
     return AutolabelConfig(name="paper", steps=3000, warmup_steps=1000, rays_per_step=1000,
