@@ -180,11 +180,16 @@ def _worker(root: str, targets: list[int], cfg: dict, out_dir: str, result_path:
     from ..optimise.consensus import apply_consensus
 
     t = time.perf_counter()
-    apply_consensus(Path(out_dir) / seq.name, seq, AutolabelConfig.from_dict(cfg).consensus)
+    try:
+        apply_consensus(Path(out_dir) / seq.name, seq, AutolabelConfig.from_dict(cfg).consensus)
+        consensus_error = None
+    except Exception as exc:  # recorded; the targets' own labels are scored
+        consensus_error = f"{type(exc).__name__}: {exc}"
     consensus_seconds = time.perf_counter() - t
     peak_kib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     Path(result_path).write_text(json.dumps({"targets": rows, "peak_rss_mib": peak_kib / 1024.0,
-                                             "consensus_seconds": consensus_seconds}))
+                                             "consensus_seconds": consensus_seconds,
+                                             "consensus_error": consensus_error}))
 
 
 def run_setting(root: Path, targets: list[int], cfg: AutolabelConfig, work: Path) -> dict:
@@ -214,6 +219,7 @@ def run_setting(root: Path, targets: list[int], cfg: AutolabelConfig, work: Path
         "seconds_per_target": (sum(r["seconds"] for r in ok) / len(ok)) if ok else None,
         "peak_rss_mib": run["peak_rss_mib"],
         "consensus_seconds": run.get("consensus_seconds"),
+        "consensus_error": run.get("consensus_error"),
         "failed": [r for r in run["targets"] if r["status"] != "done"],
         "mean_iou_3d": pairs["all"]["mean_iou_3d"],
         "mean_iou_3d_static": pairs["static"]["mean_iou_3d"],
