@@ -1,0 +1,129 @@
+"""Does the adaptive sampler's residual case need more tail samples? Labels vs the reference and step time per ``residual_tail``.
+
+On the integrator benchmark's residual scenes (``vsrd-mi bench integrator``: same seeds, same
+rays, s = 10), for each ``residual_tail`` value: the adaptive sampler's soft labels against the
+brute-force reference (:func:`vsrd_mi.bench.integrator.reference_chunk`, 5 mm grid plus every
+box's deepest point; computed once per scene) on the first 512 rays: max, 99th percentile and
+the number of rays above the issue's 0.01; and the forward + backward step time at 6 boxes /
+16k rays, every setting timed in turn in one loop (this machine is noisy: compare the ratios).
+For the worst rays it also reports how many local minima the instance SDF ``B + R`` has along
+the ray inside its box's culling margin (a 1 mm scan): the integral's discrete opacity
+telescopes over each monotone descent, so every local maximum and minimum of ``B + R`` is a
+place a sample must sit.
+
+Usage::
+
+    python benchmarks/residual_tails.py --out benchmarks/residual_tails.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from common import write_results
+import vsrd_mi  # noqa: F401  (sets the variant, registers the plugins)
+from vsrd_mi.bench import integrator as bench
+
+#: Scan step (m) along a worst ray when counting the local minima of ``B + R``.
+SCAN_STEP = 1e-3
+#: Worst rays per scene whose ``B + R`` profile is reported.
+WORST = 3
+
+
+def reference_labels(data: bench.CaseData, n: int, cfg: bench.BenchConfig) -> np.ndarray:
+    """The brute-force reference's labels (instances, rays) of the first ``n`` rays."""
+    it = bench.load_integrator(data.boxes, "dense", True, cfg)
+    chunks = (bench.reference_chunk(it, data, a, min(a + cfg.ref_chunk_rays, n), cfg)
+              for a in range(0, n, cfg.ref_chunk_rays))
+    return bench.labels_and_gradient(it, chunks)[0]
+
+
+def adaptive(data: bench.CaseData, tail: int, cfg: bench.BenchConfig):
+    return mi.load_dict({**bench.integrator_description(data.boxes, "adaptive", True, cfg),
+                         "residual_tail": tail})
+
+
+def adaptive_labels(data: bench.CaseData, tail: int, n: int, cfg: bench.BenchConfig) -> np.ndarray:
+    it = adaptive(data, tail, cfg)
+    batch = data.batch(n)
+    with dr.suspend_grad():
+        return np.stack([np.array(x) for x in it.render_rays(batch.o, batch.d, batch.time)[:it.field.n]])
+
+
+def local_minima(data: bench.CaseData, tail: int, ray: int, inst: int, cfg: bench.BenchConfig) -> list:
+    """``(t, B + R)`` at the local minima of instance ``inst``'s SDF along ``ray``, where it lies
+    within the culling margin (a :data:`SCAN_STEP` scan)."""
+    it = adaptive(data, tail, cfg)
+    margin = float(np.array(it._cull_margin())[0])
+    far = float(bench.reference_samples(data.boxes, cfg)[0])
+    t = np.arange(0.0, far, SCAN_STEP, dtype=np.float32)
+    o, d = data.o[ray], data.d[ray]
+    p = mi.Point3f(*[mi.Float(o[i] + t * d[i]) for i in range(3)])
+    with dr.suspend_grad():
+        f = np.array(it.field.instance_sdfs(it.field.decode(), p, dr.full(mi.Float, float(data.t[ray]), len(t)),
+                                            it.field.residual_weights(), reach=it._residual_reach())[inst])
+    idx = [i for i in range(1, len(f) - 1) if f[i] < f[i - 1] and f[i] <= f[i + 1] and f[i] < margin]
+    return [(round(float(t[i]), 3), round(float(f[i]), 4)) for i in idx]
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--out", type=Path, default=Path("benchmarks/residual_tails.json"))
+    ap.add_argument("--tails", type=int, nargs="+", default=[12, 16, 20, 24, 32])
+    ap.add_argument("--instances", type=int, nargs="+", default=[3, 6, 12])
+    ap.add_argument("--timing-instances", type=int, default=6)
+    ap.add_argument("--timing-rays", type=int, default=16384)
+    ap.add_argument("--repeats", type=int, default=4)
+    args = ap.parse_args()
+    cfg = bench.BenchConfig()
+    start = time.perf_counter()
+    n = cfg.accuracy_rays
+    rows = []
+    for k in args.instances:
+        data, _ = bench.case_data(cfg, k, True)
+        ref = reference_labels(data, n, cfg)
+        for tail in args.tails:
+            err = np.abs(adaptive_labels(data, tail, n, cfg) - ref)
+            per_ray = err.max(axis=0)
+            worst = [int(r) for r in np.argsort(per_ray)[::-1][:WORST]]
+            rows.append({"instances": k, "residual_tail": tail, "max_abs": float(per_ray.max()),
+                         "p99_abs": float(np.quantile(per_ray, 0.99)), "rays_above_0.01": int((per_ray > 0.01).sum()),
+                         "worst": [{"ray": r, "error": float(per_ray[r]), "instance": int(err[:, r].argmax()),
+                                    "local_minima": local_minima(data, tail, r, int(err[:, r].argmax()), cfg)}
+                                   for r in worst] if tail == args.tails[0] else
+                                  [{"ray": r, "error": float(per_ray[r])} for r in worst]})
+            print(f"{k:2d} boxes, tail {tail:2d}: max {rows[-1]['max_abs']:.4f} p99 {rows[-1]['p99_abs']:.4f} "
+                  f"rays > 0.01: {rows[-1]['rays_above_0.01']}", flush=True)
+    data, _ = bench.case_data(cfg, args.timing_instances, True)
+    batch = data.batch(args.timing_rays)
+    timed = []
+    for tail in args.tails:
+        ti = bench.TimedIntegrator(adaptive(data, tail, cfg), batch, cfg, seed=1)
+        ti.step()
+        ti.step()  # warm-up: the second call's bucket layout compiles too
+        timed.append(ti)
+    seconds = {tail: [] for tail in args.tails}
+    for _ in range(args.repeats):
+        for tail, ti in zip(args.tails, timed):
+            seconds[tail].append(ti.step()[0])
+    base = float(np.median(seconds[args.tails[0]]))
+    timing = [{"residual_tail": tail, "median_s": float(np.median(s)), "runs_s": s,
+               "ratio_to_first": float(np.median(s)) / base} for tail, s in seconds.items()]
+    for t in timing:
+        print(f"tail {t['residual_tail']:2d}: {t['median_s']:.3f} s ({t['ratio_to_first']:.2f}x)")
+    write_results(args.out, __doc__, time.perf_counter() - start, config={
+        "sharpness": cfg.sharpness, "temperature": cfg.temperature, "accuracy_rays": n,
+        "timing": {"instances": args.timing_instances, "rays": args.timing_rays, "repeats": args.repeats}},
+        accuracy=rows, timing=timing)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
