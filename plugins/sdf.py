@@ -524,7 +524,7 @@ class ResidualField:
         for c in coords:
             for k in range(cfg.frequencies):
                 a = c * ((2.0 ** k) * math.pi)
-                feats += [dr.sin(a), dr.cos(a)]
+                feats += list(dr.sincos(a))
         return feats
 
     def evaluate(self, weights: mi.TensorXf, k: int, p_local: mi.Vector3f) -> mi.Float:
@@ -871,7 +871,8 @@ class InstanceField:
     def lane_sdfs(self, dec: DecodedBoxes, p: mi.Point3f, time: mi.Float, inst: mi.UInt32,
                   weights: mi.TensorXf | None = None, reach: float | mi.Float = 0.0,
                   ridge: tuple[mi.UInt32, mi.Vector3f, float | mi.Float] | None = None,
-                  grad_reach: float | mi.Float | None = None) -> mi.Float:
+                  grad_reach: float | mi.Float | None = None, values: mi.Float | None = None,
+                  frozen: mi.Bool | None = None) -> mi.Float:
         """SDF of instance ``inst[i]`` at point ``p[i]`` (one instance per lane).
 
         The per-lane counterpart of :meth:`instance_sdfs` for samplers that evaluate only the
@@ -884,7 +885,10 @@ class InstanceField:
         runs over those alone; the box part's gradient is computed in closed form,
         :class:`_LaneBoxGradient`, ridge lanes included, which then must lie within
         ``grad_reach`` of their box: a deepest point inside it does). A sampler may pass the
-        distance beyond which an SDF value can no longer move its integral.
+        distance beyond which an SDF value can no longer move its integral. With ``grad_reach``,
+        ``values`` (this method's detached result) and ``frozen``, the ``frozen`` lanes keep
+        ``values`` and stay out of the AD graph too: a sampler may pass the lanes whose
+        gradient it knows to vanish.
         """
         if grad_reach is None:
             f = self._lane_sdfs_ad(dec, p, time, inst, weights, reach)
@@ -896,6 +900,9 @@ class InstanceField:
                 # stay beyond it
                 live_reach = grad_reach if weights is None else dr.maximum(grad_reach, reach)
                 near = f <= live_reach
+                if frozen is not None:
+                    near = near & ~frozen
+                    f = dr.select(near, f, dr.detach(values))  # box part only where it is live
                 dr.eval(f, near)  # one kernel for both (compress would evaluate the mask alone)
                 live = dr.compress(near)
             if dr.width(live):

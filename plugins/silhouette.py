@@ -333,6 +333,10 @@ class SamplingConfig:
     #: :meth:`VSRDSilhouetteIntegrator._sub_sample` puts them); see
     #: :meth:`VSRDSilhouetteIntegrator._snapped_positions`.
     residual_tail_scan: int = 3
+    #: With the residual field: samples whose gradient vanishes (inside a monotone run of the
+    #: scene SDF, one instance near) keep their values but leave the AD graph; see
+    #: :meth:`VSRDSilhouetteIntegrator._frozen_lanes`.
+    residual_sparse_gradients: bool = True
     #: Rays whose bands are isolated (see :meth:`VSRDSilhouetteIntegrator._isolated`) get
     #: ``isolated_band_samples`` band samples (>= 1; the first sits at the band's centre: the
     #: surface entry or closest approach) instead of ``band_samples``. Without the residual field
@@ -358,6 +362,7 @@ class SamplingConfig:
             residual_golden=int(props.get("residual_golden", d.residual_golden)),
             residual_tail=int(props.get("residual_tail", d.residual_tail)),
             residual_tail_scan=int(props.get("residual_tail_scan", d.residual_tail_scan)),
+            residual_sparse_gradients=bool(props.get("residual_sparse_gradients", d.residual_sparse_gradients)),
             isolated_rays=bool(props.get("isolated_rays", d.isolated_rays)),
             isolated_band_samples=int(props.get("isolated_band_samples", d.isolated_band_samples)),
             ridge_gradients=bool(props.get("ridge_gradients", d.ridge_gradients)),
@@ -506,9 +511,15 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
                 ridge = (deep, dr.gather(mi.Vector3f, d_all, deep), RIDGE_TOLERANCE)
         # beyond the culling margin of its box a lane's SDF cannot move the integral by more
         # than exp(-reach) (see _cull_margin): its value is kept, its gradient dropped
-        f_all = self.field.lane_sdfs(dec, p_all, t_all, i_all, self.field.residual_weights(),
-                                     reach=self._residual_reach(), ridge=ridge,
-                                     grad_reach=dr.detach(self._cull_margin()))
+        weights = self.field.residual_weights()
+        kw = dict(reach=self._residual_reach(), grad_reach=dr.detach(self._cull_margin()))
+        values = frozen = None
+        if weights is not None and self.cfg.residual_sparse_gradients:
+            with dr.suspend_grad():
+                values = self.field.lane_sdfs(dec, p_all, t_all, i_all, weights, **kw)
+                frozen = self._frozen_lanes(values, groups, deep)
+        f_all = self.field.lane_sdfs(dec, p_all, t_all, i_all, weights, ridge=ridge, values=values,
+                                     frozen=frozen, **kw)
         flat = dr.zeros(mi.Float, n_rays * n_inst)
         start = 0
         for rays, t, m, active, slot_inst, _, peak, own in groups:
@@ -531,6 +542,48 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
             self._count(1 if dr.width(active) > 1 else dr.width(rays), m, len(slices))
         idx = dr.arange(mi.UInt32, n_rays) * n_inst
         return [dr.gather(mi.Float, flat, idx + k) for k in range(n_inst)]
+
+    def _frozen_lanes(self, values: mi.Float, groups: list, deep: mi.UInt32) -> mi.Bool:
+        """Lanes of :meth:`_render_adaptive`'s flat layout whose SDF value cannot carry a
+        gradient of the integral (detached ``values`` of every lane in).
+
+        The opacity telescopes over each monotone run of the scene SDF ``f`` along a ray:
+        ``sum_i log(1 - alpha_i) = log Phi_s(f_end) - log Phi_s(f_start)`` over a descent, and 0
+        over an ascent, so a sample strictly inside a run (``f`` strictly monotone through it)
+        has zero derivative there. Its labels are the opacity times the softmin shares; where
+        only one instance is within the culling margin at a sample and at both neighbours, the
+        shares are 1 and 0 up to ``exp(-reach)`` (the culling bound), and the labels' derivative
+        vanishes with the opacity's. Those samples keep their values but leave the AD graph
+        (and the residual MLP's backward pass). Ends of rays, extrema, ties, the deepest points
+        (ridge gradients) and every sample next to a mixed one stay.
+        """
+        frozen = dr.zeros(mi.Bool, dr.width(values))
+        margin = dr.detach(self._cull_margin())
+        start = 0
+        for _, t, m, _, slot_inst, _, _, own in groups:
+            w = dr.width(t)
+            n_slots = 1 if own is not None else len(slot_inst)
+            lane = dr.arange(mi.UInt32, w)
+            j = lane % m
+            slots = [dr.gather(mi.Float, values, lane + dr.opaque(mi.UInt32, start + b * w)) for b in range(n_slots)]
+            f = slots[0]
+            near = dr.select(slots[0] <= margin, 1, 0)
+            for fb in slots[1:]:
+                f = dr.minimum(f, fb)
+                near += dr.select(fb <= margin, 1, 0)
+            mixed = near >= 2
+            inner = (j > 0) & (j < m - 1)
+            prev, nxt = dr.select(inner, lane - 1, lane), dr.select(inner, lane + 1, lane)
+            f_prev, f_next = dr.gather(mi.Float, f, prev), dr.gather(mi.Float, f, nxt)
+            monotone = ((f_prev > f) & (f > f_next)) | ((f_prev < f) & (f < f_next))
+            free = (inner & monotone & ~mixed & ~dr.gather(mi.Bool, mixed, prev)
+                    & ~dr.gather(mi.Bool, mixed, nxt))
+            for b in range(n_slots):
+                dr.scatter(frozen, free, lane + dr.opaque(mi.UInt32, start + b * w))
+            start += w * n_slots
+        if dr.width(deep):
+            dr.scatter(frozen, False, deep)
+        return frozen
 
     def _reach(self) -> mi.Float:
         """Band half-width ``reach / s`` in scene units."""
