@@ -1,15 +1,18 @@
-"""Does the adaptive sampler's residual case need more tail samples? Labels vs the reference and step time per ``residual_tail``.
+"""Where must the adaptive sampler put its samples with the residual field? Labels vs the reference and step time per sampling setting.
 
 On the integrator benchmark's residual scenes (``vsrd-mi bench integrator``: same seeds, same
-rays, s = 10), for each ``residual_tail`` value: the adaptive sampler's soft labels against the
-brute-force reference (:func:`vsrd_mi.bench.integrator.reference_chunk`, 5 mm grid plus every
-box's deepest point; computed once per scene) on the first 512 rays: max, 99th percentile and
-the number of rays above the issue's 0.01; and the forward + backward step time at 6 boxes /
-16k rays, every setting timed in turn in one loop (this machine is noisy: compare the ratios).
-For the worst rays it also reports how many local minima the instance SDF ``B + R`` has along
-the ray inside its box's culling margin (a 1 mm scan): the integral's discrete opacity
-telescopes over each monotone descent, so every local maximum and minimum of ``B + R`` is a
-place a sample must sit.
+rays, s = 10), for each setting (integrator options; :data:`SETTINGS`): the adaptive sampler's
+soft labels against the brute-force reference (:func:`vsrd_mi.bench.integrator.reference_chunk`,
+5 mm grid plus every box's deepest point; computed once per scene) on the first 512 rays: max,
+99th percentile and the number of rays above the issue's 0.01; and the forward + backward step
+time at 6 boxes / 16k rays, every setting timed in turn in one loop (this machine is noisy:
+compare the ratios). For the worst rays of the first setting it also lists the local minima of
+the instance SDF ``B + R`` along the ray inside its box's culling margin (a 1 mm scan): the
+integral's discrete opacity telescopes over each monotone descent, so every local maximum and
+minimum of ``B + R`` is a place a sample must sit. The settings: uniform tail samples (12-32
+per band, samples left where the band formula puts them, ``residual_tail_scan = 0``), then the
+default 12 with band and tail samples moved to the extrema a detached scan finds (1-3 scan
+points per sample), and the default without the sparse AD graph.
 
 Usage::
 
@@ -35,6 +38,17 @@ from vsrd_mi.bench import integrator as bench
 SCAN_STEP = 1e-3
 #: Worst rays per scene whose ``B + R`` profile is reported.
 WORST = 3
+#: (name, integrator options): the sampling settings compared.
+SETTINGS = (
+    ("tail 12, not moved", {"residual_tail": 12, "residual_tail_scan": 0}),
+    ("tail 16, not moved", {"residual_tail": 16, "residual_tail_scan": 0}),
+    ("tail 24, not moved", {"residual_tail": 24, "residual_tail_scan": 0}),
+    ("tail 32, not moved", {"residual_tail": 32, "residual_tail_scan": 0}),
+    ("moved, scan 1", {"residual_tail_scan": 1}),
+    ("moved, scan 2", {"residual_tail_scan": 2}),
+    ("default (moved, scan 3)", {}),
+    ("default, full AD graph", {"residual_sparse_gradients": False}),
+)
 
 
 def reference_labels(data: bench.CaseData, n: int, cfg: bench.BenchConfig) -> np.ndarray:
@@ -45,22 +59,21 @@ def reference_labels(data: bench.CaseData, n: int, cfg: bench.BenchConfig) -> np
     return bench.labels_and_gradient(it, chunks)[0]
 
 
-def adaptive(data: bench.CaseData, tail: int, cfg: bench.BenchConfig):
-    return mi.load_dict({**bench.integrator_description(data.boxes, "adaptive", True, cfg),
-                         "residual_tail": tail})
+def adaptive(data: bench.CaseData, options: dict, cfg: bench.BenchConfig):
+    return mi.load_dict({**bench.integrator_description(data.boxes, "adaptive", True, cfg), **options})
 
 
-def adaptive_labels(data: bench.CaseData, tail: int, n: int, cfg: bench.BenchConfig) -> np.ndarray:
-    it = adaptive(data, tail, cfg)
+def adaptive_labels(data: bench.CaseData, options: dict, n: int, cfg: bench.BenchConfig) -> np.ndarray:
+    it = adaptive(data, options, cfg)
     batch = data.batch(n)
     with dr.suspend_grad():
         return np.stack([np.array(x) for x in it.render_rays(batch.o, batch.d, batch.time)[:it.field.n]])
 
 
-def local_minima(data: bench.CaseData, tail: int, ray: int, inst: int, cfg: bench.BenchConfig) -> list:
+def local_minima(data: bench.CaseData, ray: int, inst: int, cfg: bench.BenchConfig) -> list:
     """``(t, B + R)`` at the local minima of instance ``inst``'s SDF along ``ray``, where it lies
     within the culling margin (a :data:`SCAN_STEP` scan)."""
-    it = adaptive(data, tail, cfg)
+    it = adaptive(data, {}, cfg)
     margin = float(np.array(it._cull_margin())[0])
     far = float(bench.reference_samples(data.boxes, cfg)[0])
     t = np.arange(0.0, far, SCAN_STEP, dtype=np.float32)
@@ -76,7 +89,6 @@ def local_minima(data: bench.CaseData, tail: int, ray: int, inst: int, cfg: benc
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--out", type=Path, default=Path("benchmarks/residual_tails.json"))
-    ap.add_argument("--tails", type=int, nargs="+", default=[12, 16, 20, 24, 32])
     ap.add_argument("--instances", type=int, nargs="+", default=[3, 6, 12])
     ap.add_argument("--timing-instances", type=int, default=6)
     ap.add_argument("--timing-rays", type=int, default=16384)
@@ -89,35 +101,35 @@ def main() -> int:
     for k in args.instances:
         data, _ = bench.case_data(cfg, k, True)
         ref = reference_labels(data, n, cfg)
-        for tail in args.tails:
-            err = np.abs(adaptive_labels(data, tail, n, cfg) - ref)
+        for name, options in SETTINGS:
+            err = np.abs(adaptive_labels(data, options, n, cfg) - ref)
             per_ray = err.max(axis=0)
             worst = [int(r) for r in np.argsort(per_ray)[::-1][:WORST]]
-            rows.append({"instances": k, "residual_tail": tail, "max_abs": float(per_ray.max()),
+            rows.append({"instances": k, "setting": name, "options": options, "max_abs": float(per_ray.max()),
                          "p99_abs": float(np.quantile(per_ray, 0.99)), "rays_above_0.01": int((per_ray > 0.01).sum()),
                          "worst": [{"ray": r, "error": float(per_ray[r]), "instance": int(err[:, r].argmax()),
-                                    "local_minima": local_minima(data, tail, r, int(err[:, r].argmax()), cfg)}
-                                   for r in worst] if tail == args.tails[0] else
+                                    "local_minima": local_minima(data, r, int(err[:, r].argmax()), cfg)}
+                                   for r in worst] if name == SETTINGS[0][0] else
                                   [{"ray": r, "error": float(per_ray[r])} for r in worst]})
-            print(f"{k:2d} boxes, tail {tail:2d}: max {rows[-1]['max_abs']:.4f} p99 {rows[-1]['p99_abs']:.4f} "
+            print(f"{k:2d} boxes, {name:26s}: max {rows[-1]['max_abs']:.4f} p99 {rows[-1]['p99_abs']:.4f} "
                   f"rays > 0.01: {rows[-1]['rays_above_0.01']}", flush=True)
     data, _ = bench.case_data(cfg, args.timing_instances, True)
     batch = data.batch(args.timing_rays)
     timed = []
-    for tail in args.tails:
-        ti = bench.TimedIntegrator(adaptive(data, tail, cfg), batch, cfg, seed=1)
+    for _, options in SETTINGS:
+        ti = bench.TimedIntegrator(adaptive(data, options, cfg), batch, cfg, seed=1)
         ti.step()
         ti.step()  # warm-up: the second call's bucket layout compiles too
         timed.append(ti)
-    seconds = {tail: [] for tail in args.tails}
+    seconds = {name: [] for name, _ in SETTINGS}
     for _ in range(args.repeats):
-        for tail, ti in zip(args.tails, timed):
-            seconds[tail].append(ti.step()[0])
-    base = float(np.median(seconds[args.tails[0]]))
-    timing = [{"residual_tail": tail, "median_s": float(np.median(s)), "runs_s": s,
-               "ratio_to_first": float(np.median(s)) / base} for tail, s in seconds.items()]
+        for (name, _), ti in zip(SETTINGS, timed):
+            seconds[name].append(ti.step()[0])
+    base = float(np.median(seconds[SETTINGS[0][0]]))
+    timing = [{"setting": name, "median_s": float(np.median(s)), "runs_s": s,
+               "ratio_to_first": float(np.median(s)) / base} for name, s in seconds.items()]
     for t in timing:
-        print(f"tail {t['residual_tail']:2d}: {t['median_s']:.3f} s ({t['ratio_to_first']:.2f}x)")
+        print(f"{t['setting']:26s}: {t['median_s']:.3f} s ({t['ratio_to_first']:.2f}x)")
     write_results(args.out, __doc__, time.perf_counter() - start, config={
         "sharpness": cfg.sharpness, "temperature": cfg.temperature, "accuracy_rays": n,
         "timing": {"instances": args.timing_instances, "rays": args.timing_rays, "repeats": args.repeats}},
