@@ -1060,14 +1060,21 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         groups = [(k, dr.compress(valid & (inst == k))) for k in range(self.field.n)]
         groups = [(k, idx) for k, idx in groups if dr.width(idx)]
 
+        pairs = dr.opaque(mi.UInt32, n_slots * n)
+
         def sdf(t: mi.Float, reps: int) -> mi.Float:
             m = dr.width(t)
-            pair = dr.arange(mi.UInt32, m) % dr.opaque(mi.UInt32, n_slots * n)
+            pair = dr.arange(mi.UInt32, m) % pairs
             ol, dl, half = [dr.gather(type(x), x, pair) for x in flat]
             pl = ol + t * dl
             f = box_sdf_local(pl, half)
-            lanes = [concat([idx + dr.opaque(mi.UInt32, r * n_slots * n) for r in range(reps)]) if reps > 1 else idx
-                     for _, idx in groups]
+            # per instance its pairs in every block, as one expression (a concatenation would
+            # launch a kernel per block)
+            lanes = []
+            for _, idx in groups:
+                q = dr.arange(mi.UInt32, dr.width(idx) * reps)
+                nv = dr.opaque(mi.UInt32, dr.width(idx))
+                lanes.append(dr.gather(mi.UInt32, idx, q % nv) + (q // nv) * pairs)
             res = self.field.residual.evaluate_grouped(
                 weights, [k for k, _ in groups], [dr.gather(mi.Vector3f, pl, ln) for ln in lanes])
             extra = dr.zeros(mi.Float, m)
@@ -1103,16 +1110,31 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         width = n_slots * n
         a, b = concat(starts), concat(ends)
         nominal = [self._sub_sample(a, b, i, k_sub, dense_at_b) for i in range(k + 1)]
+
+        def scan_point(lo, hi, j):
+            """``j``-th of ``per`` points of the cell ``(lo, hi]`` (the last at ``hi`` exactly)."""
+            return dr.select(j == per, hi, dr.fma(hi - lo, mi.Float(j) * (1.0 / per), lo))
+
         # scan parameters: the start, ``per`` per cell (the last at its nominal sample), and the
         # next nominal sample (a fixed one: a band's centre, a tail's extra sample) or none
         ts = [nominal[0]]
         for i in range(1, k + 1):
-            ts += [dr.fma(nominal[i] - nominal[i - 1], j / per, nominal[i - 1]) for j in range(1, per)] + [nominal[i]]
+            ts += [scan_point(nominal[i - 1], nominal[i], j) for j in range(1, per + 1)]
         if k < k_sub:
             ts.append(self._sub_sample(a, b, k + 1, k_sub, dense_at_b))
-        values = sdf(concat(ts), len(ts))
+        # the same parameters as one flat array, pair-major blocks, from one expression
+        wo = dr.opaque(mi.UInt32, width)
+        q = dr.arange(mi.UInt32, len(ts) * width)
+        m = q // wo
+        pair = q - m * wo
+        ap, bp = dr.gather(mi.Float, a, pair), dr.gather(mi.Float, b, pair)
+        cell = dr.select(m == 0, 0, dr.minimum((m + per - 1) // per, k + 1))
+        j = dr.select((m == 0) | (cell > k), per, m - (cell - 1) * per)
+        flat = scan_point(self._sub_sample(ap, bp, dr.select(cell > 0, cell - 1, 0), k_sub, dense_at_b),
+                          self._sub_sample(ap, bp, cell, k_sub, dense_at_b), j)
+        values = sdf(flat, len(ts))
         lane = dr.arange(mi.UInt32, width)
-        v = [dr.gather(mi.Float, values, lane + dr.opaque(mi.UInt32, i * width)) for i in range(len(ts))]
+        v = [dr.gather(mi.Float, values, lane + wo * i) for i in range(len(ts))]
         out = []
         for i in range(1, k + 1):
             last = i * per  # scan index of the nominal position
@@ -1133,8 +1155,8 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
                 take = score > best
                 best, pos = dr.select(take, score, best), dr.select(take, vertex, pos)
             out.append(pos)
-        return [[dr.gather(mi.Float, p, dr.arange(mi.UInt32, n) + dr.opaque(mi.UInt32, s_ * n)) for p in out]
-                for s_ in range(n_slots)]
+        no = dr.opaque(mi.UInt32, n)
+        return [[dr.gather(mi.Float, p, dr.arange(mi.UInt32, n) + no * s_) for p in out] for s_ in range(n_slots)]
 
     def _residual_minima(self, dec, slot_views, slot_inst, count, picked) -> list[mi.Float]:
         """Per slot, where the instance SDF ``F = B + R`` is least along the ray (detached).
