@@ -29,6 +29,11 @@ r"""Instance-aware NeuS silhouette integrator (``vsrd_silhouette``).
      ``B``), tail samples per band covering the rest of the box's chord, where ``B + R``
      can dip again (0: none), and detached scan points per band and tail sample that move it
      to a local extremum of ``B + R`` in its cell (0: none). (Default: 4, 0, 12, 3)
+ * - residual_sparse_gradients
+   - |bool|
+   - Adaptive sampling with the residual: samples strictly inside a monotone run of the scene
+     SDF with one instance near keep their values but leave the AD graph (their derivative
+     vanishes; see below). (Default: true)
  * - isolated_rays, isolated_band_samples
    - |bool|, |int|
    - Adaptive sampling without the residual field: rays whose enlarged boxes are disjoint along
@@ -114,7 +119,10 @@ maxima and descents of ``f``, which is what the two sampling strategies target:
   telescopes exactly between the entry, centre and deepest-point samples: it gets
   ``isolated_band_samples`` band samples and only the band's own box is evaluated at them (the
   others stand in as :data:`ISOLATED_ELSEWHERE`). Only sample positions are detached; SDF values
-  at samples carry gradients.
+  at samples carry gradients, except, with the residual field (``residual_sparse_gradients``),
+  at samples strictly inside a monotone run of ``f`` with one instance near: the telescoping
+  gives them zero derivative, so they keep their values but leave the AD graph and the MLP's
+  backward pass (:meth:`~VSRDSilhouetteIntegrator._frozen_lanes`).
 
 Gradients at a box's interior ridges
 ------------------------------------
