@@ -401,6 +401,15 @@ class ResidualConfig:
         dims = [self.in_features] + [self.mlp_width] * self.mlp_layers + [1]
         return [(dims[i + 1], dims[i]) for i in range(len(dims) - 1)]
 
+    def mlp_layout(self) -> list[tuple[int, int, int, int]]:
+        """``(out, in, weight offset, bias offset)`` of each layer of G in its flat parameter
+        vector (per layer the row-major weights, then the bias)."""
+        layout, offset = [], 0
+        for o, fi in self.mlp_shapes():
+            layout.append((o, fi, offset, offset + o * fi))
+            offset += o * fi + o
+        return layout
+
     @property
     def num_mlp_params(self) -> int:
         return sum(o * i + o for o, i in self.mlp_shapes())
@@ -564,12 +573,9 @@ class ResidualField:
         hypernetwork's ``(num_mlp_params, N)`` output; ``k`` is opaque (one set of kernels for
         every instance)."""
         kk = dr.opaque(mi.UInt32, k)
-        offset = 0
-        for o, fi in self.cfg.mlp_shapes():
-            w = dr.gather(mi.Float, weights.array, (offset + dr.arange(mi.UInt32, o * fi)) * self.n + kk)
-            offset += o * fi
-            b = dr.gather(mi.Float, weights.array, (offset + dr.arange(mi.UInt32, o)) * self.n + kk)
-            offset += o
+        for o, fi, w_at, b_at in self.cfg.mlp_layout():
+            w = dr.gather(mi.Float, weights.array, (w_at + dr.arange(mi.UInt32, o * fi)) * self.n + kk)
+            b = dr.gather(mi.Float, weights.array, (b_at + dr.arange(mi.UInt32, o)) * self.n + kk)
             yield o, fi, w, b
 
     def _output(self, g):
@@ -585,13 +591,10 @@ class ResidualField:
         params = _tensor(dr.gather(mi.Float, weights.array, dr.arange(mi.UInt32, n_params) * self.n
                                    + dr.opaque(mi.UInt32, k)), (n_params,))
         x = nn.CoopVec(*self.encode(points))
-        shapes = self.cfg.mlp_shapes()
-        offset = 0
-        for i, (o, fi) in enumerate(shapes):
-            w, b = _row_major_view(params, offset, o, fi), _row_major_view(params, offset + o * fi, o, 1)
-            offset += o * fi + o
-            x = nn.matvec(w, x, b)
-            if i < len(shapes) - 1:
+        layout = self.cfg.mlp_layout()
+        for i, (o, fi, w_at, b_at) in enumerate(layout):
+            x = nn.matvec(_row_major_view(params, w_at, o, fi), x, _row_major_view(params, b_at, o, 1))
+            if i < len(layout) - 1:
                 x = nn.CoopVec(*[gelu(v) for v in layer_norm(list(x))])
         return self._output(list(x)[0])
 

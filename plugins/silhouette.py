@@ -308,11 +308,10 @@ def pick(values: list[mi.Float], i: mi.UInt32) -> mi.Float:
     return out
 
 
-def count_sorted(values: list[mi.Float], before) -> mi.UInt32:
-    """How many of the per-lane sorted ``values`` satisfy ``before`` (a prefix of them): a
-    binary search."""
-    n = len(values)
-    return dr.binary_search(1, n + 1, lambda i: (i <= n) & before(pick(values, dr.minimum(i, n)))) - 1
+def count_prefix(n: int, value, before) -> mi.UInt32:
+    """How many of the per-lane sorted samples ``value(i)``, ``i = 1..n``, satisfy ``before``
+    (it holds for a prefix of them): a binary search on the samples themselves."""
+    return dr.binary_search(1, n + 1, lambda i: (i <= n) & before(value(dr.minimum(i, n)))) - 1
 
 
 @dataclass(frozen=True)
@@ -886,9 +885,10 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
             slot_views = [self._slot_view(views, kb) for kb in slot_inst]
             # with the residual the instance SDF B + R has its minimum near, not at, the box's:
             # the band ends there instead (the gap peaks and the slot order stay the box's)
-            fmin = None
-            if self._residual_search():
-                fmin = self._residual_minima(dec, slot_views, slot_inst, count, picked)
+            fmin = sdf = None
+            if self._residual_search():  # F = B + R of every (slot, ray) pair, built once
+                sdf = self._pair_sdf(slot_views, slot_inst, count)
+                fmin = self._residual_minima(sdf, slot_views, count, picked)
             use_tail = self._tail_samples()[1] > 0
             slots, slot_hit, slot_ts, tails, deepests = [], [], [], [], []
             for b, (valid, e0, e1, ts, c, b1, hb) in enumerate(picked):
@@ -930,7 +930,7 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
                      for sl, (pk, ok, lam, pa, pb), tail, deep in zip(slots, peaks, tails, deepests)]
             if self._snaps():  # band and tail samples at the extrema of B + R
                 slots = [sl + tuple(x for part in parts for x in part) for sl, parts in
-                         zip(slots, zip(*self._snapped_slots(self._pair_sdf(slot_views, slot_inst, count), slots)))]
+                         zip(slots, zip(*self._snapped_slots(sdf, slots)))]
             isolated = self._isolated(picked, count)
             dr.eval(count, slots, slot_inst, slot_hit, isolated)
         return ray_idx, count, slots, slot_inst, slot_hit, isolated
@@ -1166,8 +1166,9 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         no = dr.opaque(mi.UInt32, n)
         return [[dr.gather(mi.Float, p, dr.arange(mi.UInt32, n) + no * s_) for p in out] for s_ in range(n_slots)]
 
-    def _residual_minima(self, dec, slot_views, slot_inst, count, picked) -> list[mi.Float]:
-        """Per slot, where the instance SDF ``F = B + R`` is least along the ray (detached).
+    def _residual_minima(self, sdf, slot_views, count, picked) -> list[mi.Float]:
+        """Per slot, where the instance SDF ``F = B + R`` is least along the ray (detached;
+        ``sdf`` from :meth:`_pair_sdf`).
 
         ``R >= 0`` moves ``F``'s minimum off the box's: along a ray grazing a face ``B`` is
         nearly flat and ``R`` decides, and inside a box ``F`` can keep falling past ``B``'s
@@ -1182,7 +1183,6 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         cfg = self.cfg
         n_slots, n = len(slot_views), dr.width(count)
         w = self._reach()
-        sdf = self._pair_sdf(slot_views, slot_inst, count)
         a_s, b_s, ts_s = [], [], []
         for valid_b, e0, e1, ts, c, b1, hb in picked:
             a_s.append(dr.select(hb, c, dr.maximum(ts - w, e0)))
@@ -1269,10 +1269,7 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         search on the samples themselves: inverting the sample formula misplaced ranks by more
         than one where a band is narrow next to its distance (float rounding), which left rays
         unsorted."""
-        n = k if n is None else n
-        first_after = dr.binary_search(
-            1, n + 1, lambda i: (i <= n) & before(self._sub_sample(a, b, dr.minimum(i, n), k, dense_at_b)))
-        return first_after - 1
+        return count_prefix(k if n is None else n, lambda i: self._sub_sample(a, b, i, k, dense_at_b), before)
 
     def _sub_bands(self, sl: tuple, kk: int, kp: int, kq: int, snapped: bool) -> list[tuple]:
         """A band's runs of samples between its entry and its extra sample and after it (see
@@ -1289,7 +1286,7 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
                         lambda before: self._count_before(a, b, k_sub, before, dense_at_b, n=k_run)))
 
         def data(first, values):
-            out.append((first, len(values), lambda i: pick(values, i), lambda before: count_sorted(values, before)))
+            out.append((first, len(values), lambda i: pick(values, i), lambda before: count_prefix(len(values), lambda i: pick(values, i), before)))
 
         moved = list(sl[TAILS:])
         tail1, moved = moved[:kp], moved[kp:]

@@ -228,13 +228,13 @@ def residual_label_error(seed: int, n_inst: int, variants: dict, quantile: float
     with dr.suspend_grad():
         ref = np.stack([np.array(x) for x in
                         reference_labels(make(scene, sampling="dense", **kw), scene, rays, 10.0)[:n_inst]])
-        p99 = {}
+        err = {}
         for name, opts in variants.items():
             labels = make(scene, **opts, **kw).render_rays(*rays)[:n_inst]
-            err = np.abs(np.stack([np.array(x) for x in labels]) - ref).max(axis=0)
-            p99[name] = float(np.quantile(err, quantile))
-    print(p99)
-    return p99
+            ray_err = np.abs(np.stack([np.array(x) for x in labels]) - ref).max(axis=0)
+            err[name] = float(np.quantile(ray_err, quantile))
+    print(err)
+    return err
 
 
 def test_adaptive_with_residual_samples_the_field_minimum():
