@@ -158,6 +158,7 @@ Usage
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Iterator, NamedTuple
 
 import drjit as dr
 import mitsuba as mi
@@ -303,8 +304,67 @@ class _NextSample(dr.CustomOp):
         return "NextSample"
 
 
-#: Index of the first moved tail position in a slot tuple of ``_adaptive_bands``.
-TAILS = 11
+class Picked(NamedTuple):
+    """Per ray, the box of one band slot as :meth:`VSRDSilhouetteIntegrator._adaptive_bands`
+    picks it (detached arrays over the rays)."""
+
+    valid: mi.Bool  #: the ray has this slot (it meets that many enlarged boxes)
+    entry: mi.Float  #: enlarged box entry along the ray
+    exit: mi.Float  #: enlarged box exit
+    tstar: mi.Float  #: the box SDF's least point along the ray (closest approach / deepest point)
+    centre: mi.Float  #: surface entry (a hit) or closest approach (a miss)
+    surface_exit: mi.Float  #: where the ray leaves the box itself
+    hit: mi.Bool  #: the ray enters the box
+
+
+class GapPeak(NamedTuple):
+    """Per ray, the scene SDF's maximum after a slot (:meth:`VSRDSilhouetteIntegrator._gap_peaks`)."""
+
+    t: mi.Float  #: where along the ray
+    ok: mi.Bool  #: the gap exists
+    lam: mi.Float  #: envelope weight of slot ``a``, ``-1`` where the peak is no crossing
+    a: mi.Float  #: the slot rising into the peak (an exact small integer)
+    b: mi.Float  #: the slot falling from it
+
+
+class Slot(NamedTuple):
+    """Per ray, one band's detached sample anchors (:meth:`VSRDSilhouetteIntegrator._adaptive_bands`;
+    arrays over the rays, an invalid slot at ``far``)."""
+
+    entry: mi.Float  #: enlarged box entry: the band's first sample
+    lo: mi.Float  #: start of the band's first half
+    mid: mi.Float  #: the band's centre: surface entry, closest approach or least ``B + R``
+    hi: mi.Float  #: end of the band's second half
+    extra: mi.Float  #: the extra sample: a hit's deepest point, else the far end / a tail split
+    peak: mi.Float  #: the gap peak after the band (``extra`` where there is none)
+    peak_lambda: mi.Float  #: the peak's envelope weight (``-1``: no crossing), see :class:`GapPeak`
+    peak_a: mi.Float  #: the peak's rising slot
+    peak_b: mi.Float  #: the peak's falling slot
+    tail_end: mi.Float  #: end of the second tail (the enlarged box's exit)
+    deepest: mi.Float  #: the sample at the box's least ``B + R`` (a hit's deepest point)
+    #: band and tail positions moved to the extrema of ``B + R``, in the order
+    #: :meth:`VSRDSilhouetteIntegrator._snapped_slots` returns them (empty: not moved)
+    moved: tuple = ()
+
+    def map(self, f) -> "Slot":
+        """The slot with ``f`` applied to every array (the moved positions included)."""
+        return Slot(*(f(v) for v in self[:-1]), tuple(f(v) for v in self.moved))
+
+
+class SampleGroup(NamedTuple):
+    """The adaptive samples of the rays with one band count and layout
+    (:meth:`VSRDSilhouetteIntegrator._adaptive_groups`)."""
+
+    rays: mi.UInt32  #: the group's rays (indices into the batch)
+    t: mi.Float  #: ``m`` sorted sample positions per ray, ray-major
+    m: int  #: samples per ray
+    active: mi.Bool  #: masks the padding copy of a single-ray group
+    inst: list  #: per band slot the instance of each ray's band (``mi.UInt32``)
+    deepest: mi.UInt32  #: per sample the band whose deepest point it is (``len(inst)``: none)
+    #: per sample the two bands crossing at a gap peak and the first's envelope weight
+    #: (``-1``: no peak), see :meth:`VSRDSilhouetteIntegrator._gap_peaks`
+    peak: tuple
+    own: mi.UInt32 | None  #: per sample its band in an isolated group (``None`` otherwise)
 
 
 def pick(values: list[mi.Float], i: mi.UInt32) -> mi.Float:
@@ -498,7 +558,7 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         # SDF (and the residual MLP) is evaluated in one batch
         with dr.suspend_grad():
             ray_lanes, ts, insts, deep = [], [], [], []
-            for rays, t, m, active, slot_inst, deepest, _, own in groups:
+            for rays, t, m, _, slot_inst, deepest, _, own in groups:
                 r = dr.arange(mi.UInt32, dr.width(t)) // m
                 ray_of = dr.gather(mi.UInt32, rays, r)
                 if own is not None:  # isolated rays: each sample's own band's instance only
@@ -557,7 +617,7 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         idx = dr.arange(mi.UInt32, n_rays) * n_inst
         return [dr.gather(mi.Float, flat, idx + k) for k in range(n_inst)]
 
-    def _frozen_lanes(self, values: mi.Float, groups: list, deep: mi.UInt32) -> mi.Bool:
+    def _frozen_lanes(self, values: mi.Float, groups: list[SampleGroup], deep: mi.UInt32) -> mi.Bool:
         """Lanes of :meth:`_render_adaptive`'s flat layout whose SDF value cannot carry a
         gradient of the integral (detached ``values`` of every lane in).
 
@@ -574,9 +634,10 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         frozen = dr.zeros(mi.Bool, dr.width(values))
         margin = dr.detach(self._cull_margin())
         start = 0
-        for _, t, m, _, slot_inst, _, _, own in groups:
+        for grp in groups:
+            t, m = grp.t, grp.m
             w = dr.width(t)
-            n_slots = 1 if own is not None else len(slot_inst)
+            n_slots = 1 if grp.own is not None else len(grp.inst)
             lane = dr.arange(mi.UInt32, w)
             j = lane % m
             slots = [dr.gather(mi.Float, values, lane + dr.opaque(mi.UInt32, start + b * w)) for b in range(n_slots)]
@@ -800,12 +861,12 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         """Detached per-ray band search.
 
         Returns ``(ray_idx, count, slots, slot_inst, slot_hit, isolated)``: indices of rays meeting at least
-        one enlarged box, their number of bands, per slot ``(entry, lo, mid, hi, extra, peak,
-        lambda, a, b, tail_end, deepest)`` arrays (the gap peak after the band with its crossing
-        slots and envelope weight, see :meth:`_gap_peaks`; the end of the second tail, see
-        :meth:`_tail_samples`; the sample at a hit's minimum, ``extra`` unless the band already
-        ends there; slots sorted by the box's deepest point / closest approach along the ray,
-        which :meth:`_gap_peaks` needs; a ray's valid slots come first), per slot the band's
+        one enlarged box, their number of bands, per slot a :class:`Slot` of arrays over those
+        rays (the gap peak after the band with its crossing slots and envelope weight, see
+        :meth:`_gap_peaks`; the end of the second tail, see :meth:`_tail_samples`; the sample at
+        a hit's minimum, ``extra`` unless the band already ends there; slots sorted by the box's
+        deepest point / closest approach along the ray, which :meth:`_gap_peaks` needs; a ray's
+        valid slots come first), per slot the band's
         instance (``num_instances`` for an empty slot) and whether the ray enters that box, and
         per ray whether it is isolated (:meth:`_isolated`).
         """
@@ -889,7 +950,7 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
                                          zip((entry[k], exit_[k], tstar[k], centre[k], tout[k]), (e0, e1, ts, c, b1))]
                     hb = dr.select(is_k, hit[k], hb)
                     keys[k] = dr.select(is_k, big, keys[k])
-                picked.append((valid, e0, e1, ts, c, b1, hb))
+                picked.append(Picked(valid, e0, e1, ts, c, b1, hb))
                 slot_inst.append(kb)
             slot_views = [self._slot_view(views, kb) for kb in slot_inst]
             # with the residual the instance SDF B + R has its minimum near, not at, the box's:
@@ -899,7 +960,7 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
                 sdf = self._pair_sdf(slot_views, slot_inst, count)
                 fmin = self._residual_minima(sdf, slot_views, count, picked)
             use_tail = self._tail_samples()[1] > 0
-            slots, slot_hit, slot_ts, tails, deepests = [], [], [], [], []
+            anchors, slot_hit, slot_ts, tails, deepests = [], [], [], [], []
             for b, (valid, e0, e1, ts, c, b1, hb) in enumerate(picked):
                 if fmin is not None:
                     c = dr.select(hb, c, fmin[b])
@@ -929,22 +990,24 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
                     split = extra <= hi
                     deepest_t = dr.select(split, hi, extra)
                     extra = dr.select(split, dr.maximum(0.5 * (hi + tail), hi), extra)
-                slots.append(tuple(dr.select(valid, v, cfg.far) for v in (e0, lo, mid, hi, extra)))
+                anchors.append([dr.select(valid, v, cfg.far) for v in (e0, lo, mid, hi, extra)])
                 deepests.append(dr.select(valid, deepest_t, cfg.far))
                 tails.append(dr.select(valid, tail, cfg.far))
                 slot_hit.append(valid & hb)
                 slot_ts.append(dr.select(valid, ts, cfg.far))
             peaks = self._gap_peaks(slot_views, slot_ts, count)
-            slots = [sl + (dr.select(ok, pk, sl[4]), dr.select(ok, lam, -1.0), pa, pb, tail, deep)
-                     for sl, (pk, ok, lam, pa, pb), tail, deep in zip(slots, peaks, tails, deepests)]
+            slots = [Slot(*anchor, peak=dr.select(pk.ok, pk.t, anchor[4]),
+                          peak_lambda=dr.select(pk.ok, pk.lam, -1.0), peak_a=pk.a, peak_b=pk.b,
+                          tail_end=tail, deepest=deep)
+                     for anchor, pk, tail, deep in zip(anchors, peaks, tails, deepests)]
             if self._snaps():  # band and tail samples at the extrema of B + R
-                slots = [sl + tuple(x for part in parts for x in part) for sl, parts in
+                slots = [sl._replace(moved=tuple(x for part in parts for x in part)) for sl, parts in
                          zip(slots, zip(*self._snapped_slots(sdf, slots)))]
             isolated = self._isolated(picked, count)
             dr.eval(count, slots, slot_inst, slot_hit, isolated)
         return ray_idx, count, slots, slot_inst, slot_hit, isolated
 
-    def _isolated(self, picked: list[tuple], count: mi.UInt32) -> mi.Bool:
+    def _isolated(self, picked: list[Picked], count: mi.UInt32) -> mi.Bool:
         """Rays whose enlarged-box intervals are pairwise disjoint (no residual field; all rays
         when ``isolated_rays`` is off or the field is on: none).
 
@@ -962,7 +1025,7 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
             return mi.Bool(False)
         isolated = mi.Bool(True)
         for b in range(len(picked) - 1):
-            exit_b, entry_next = picked[b][2], picked[b + 1][1]
+            exit_b, entry_next = picked[b].exit, picked[b + 1].entry
             isolated &= (count <= b + 1) | (exit_b < entry_next)
         return isolated
 
@@ -971,7 +1034,7 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         field is off (``B + R`` need not be convex along a ray)."""
         return self.cfg.isolated_rays and self.field.residual_reach == 0
 
-    def _gap_peaks(self, slot_views, slot_ts, count) -> list[tuple]:
+    def _gap_peaks(self, slot_views, slot_ts, count) -> list[GapPeak]:
         """Per slot ``b`` (slots sorted by deepest point): the maximum of the scene SDF (the min
         over the ray's boxes) between the deepest points of slots ``b`` and ``b + 1``
         (detached golden-section search), whether that gap exists, the slots ``a <= b < a'``
@@ -993,7 +1056,7 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         ``lambda_a = -g_a' / (g_a - g_a')`` (Danskin, as at a box's ridge); ``-1`` where the
         peak is not such a crossing. Slot indices are returned as Floats (exact small integers)."""
         n_slots = len(slot_views)
-        none = (mi.Float(0.0), mi.Bool(False), mi.Float(-1.0), mi.Float(0.0), mi.Float(0.0))
+        none = GapPeak(mi.Float(0.0), mi.Bool(False), mi.Float(-1.0), mi.Float(0.0), mi.Float(0.0))
         if n_slots < 2:
             return [none] * n_slots
         big = 1e30
@@ -1031,7 +1094,7 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
                 ga, gb = dr.select(a == j, g, ga), dr.select(a2 == j, g, gb)
             crossing = (ga > 0.0) & (gb < 0.0)
             lam = dr.select(crossing, envelope_weight(dr.select(crossing, ga, 1.0), dr.select(crossing, gb, -1.0)), -1.0)
-            out.append((tp, ok, lam, mi.Float(a), mi.Float(a2)))
+            out.append(GapPeak(tp, ok, lam, mi.Float(a), mi.Float(a2)))
         return out + [none]
 
     def _slot_view(self, views, kb: mi.UInt32) -> tuple:
@@ -1047,7 +1110,7 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         (:meth:`_snapped_positions`): the tail samples are on and ``residual_tail_scan > 0``."""
         return self._tail_samples()[1] > 0 and self.cfg.residual_tail_scan > 0
 
-    def _snapped_slots(self, sdf, slots: list[tuple]) -> list[list[list[mi.Float]]]:
+    def _snapped_slots(self, sdf, slots: list[Slot]) -> list[list[list[mi.Float]]]:
         """Moved positions of every slot's samples in the order :meth:`_sub_bands` reads them: the first
         tail's ``kp`` in ``(hi, extra)``, the second tail's ``kq`` in ``(extra, tail end]``, the
         band's first half's ``K/2 - 1`` in ``(lo, mid)`` (its last sample, the centre, stays)
@@ -1055,8 +1118,8 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         (sample) of arrays (ray)."""
         kp, kq = self._tail_samples()
         k1, k2 = self._halves(self.cfg.band_samples)
-        col = [[sl[i] for sl in slots] for i in (1, 2, 3, 4, 9)]
-        lo, mid, hi, extra, tail = col
+        lo, mid, hi, extra, tail = ([getattr(sl, name) for sl in slots]
+                                    for name in ("lo", "mid", "hi", "extra", "tail_end"))
         empty = [[] for _ in slots]
         return [self._snapped_positions(sdf, hi, extra, kp + 1, kp) if kp else empty,
                 self._snapped_positions(sdf, extra, tail, kq, kq),
@@ -1175,7 +1238,7 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         no = dr.opaque(mi.UInt32, n)
         return [[dr.gather(mi.Float, p, dr.arange(mi.UInt32, n) + no * s_) for p in out] for s_ in range(n_slots)]
 
-    def _residual_minima(self, sdf, slot_views, count, picked) -> list[mi.Float]:
+    def _residual_minima(self, sdf, slot_views, count, picked: list[Picked]) -> list[mi.Float]:
         """Per slot, where the instance SDF ``F = B + R`` is least along the ray (detached;
         ``sdf`` from :meth:`_pair_sdf`).
 
@@ -1193,10 +1256,10 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         n_slots, n = len(slot_views), dr.width(count)
         w = self._reach()
         a_s, b_s, ts_s = [], [], []
-        for valid_b, e0, e1, ts, c, b1, hb in picked:
-            a_s.append(dr.select(hb, c, dr.maximum(ts - w, e0)))
-            b_s.append(dr.select(hb, dr.maximum(b1, c), dr.minimum(ts + w, e1)))
-            ts_s.append(ts)
+        for pk in picked:
+            a_s.append(dr.select(pk.hit, pk.centre, dr.maximum(pk.tstar - w, pk.entry)))
+            b_s.append(dr.select(pk.hit, dr.maximum(pk.surface_exit, pk.centre), dr.minimum(pk.tstar + w, pk.exit)))
+            ts_s.append(pk.tstar)
         a, b, ts = concat(a_s), concat(b_s), concat(ts_s)
         k = cfg.residual_scan
         step = (b - a) / (k - 1)
@@ -1280,13 +1343,13 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         unsorted."""
         return count_prefix(k if n is None else n, lambda i: self._sub_sample(a, b, i, k, dense_at_b), before)
 
-    def _sub_bands(self, sl: tuple, kk: int, kp: int, kq: int, snapped: bool) -> list[tuple]:
+    def _sub_bands(self, sl: Slot, kk: int, kp: int, kq: int, snapped: bool) -> list[tuple]:
         """A band's runs of samples between its entry and its extra sample and after it (see
         :meth:`_adaptive_groups`), as ``(first index in the band, count, value(i), counter(before))``:
         ``value`` gives the ``i``-th (1-based) sample, ``counter`` how many of them satisfy
         ``before`` (a prefix). From :meth:`_sub_sample`'s formula, or from the positions
-        :meth:`_snapped_slots` moved (``snapped``; slot entries from :data:`TAILS` on)."""
-        e0, lo, mid, hi, ex = sl[:5]
+        :meth:`_snapped_slots` moved (``snapped``; :attr:`Slot.moved`)."""
+        lo, mid, hi, ex = sl.lo, sl.mid, sl.hi, sl.extra
         k1, k2 = self._halves(kk)
         out = []
 
@@ -1297,7 +1360,7 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         def data(first, values):
             out.append((first, len(values), lambda i: pick(values, i), lambda before: count_prefix(len(values), lambda i: pick(values, i), before)))
 
-        moved = list(sl[TAILS:])
+        moved = list(sl.moved)
         tail1, moved = moved[:kp], moved[kp:]
         tail2, moved = moved[:kq], moved[kq:]
         band1, band2 = moved[:k1 - 1], moved[k1 - 1:k1 - 1 + k2]
@@ -1316,14 +1379,14 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
             if kp:  # strictly inside (hi, ex): the extra sample follows
                 formula(kk + 1, kp, hi, ex, kp + 1)
             if kq:
-                formula(kk + kp + 2, kq, ex, sl[9], kq)
+                formula(kk + kp + 2, kq, ex, sl.tail_end, kq)
         return out
 
-    def _adaptive_groups(self, dec, o, d, time):
+    def _adaptive_groups(self, dec, o, d, time) -> Iterator[SampleGroup]:
         """Sample positions for the adaptive strategy, one group per band count and layout
         (isolated rays, :meth:`_isolated`, get ``isolated_band_samples`` instead of ``K``).
 
-        Yields ``(ray_idx, t, m, active, inst, deepest, peak, own)``: rays with exactly ``g`` bands get
+        Yields a :class:`SampleGroup` ``(rays, t, m, active, inst, deepest, peak, own)``: rays with exactly ``g`` bands get
         ``m = g (K + 3 + T)`` samples (entry, ``K`` band samples, the first tail, closest approach /
         exit, the second tail, and the scene SDF's peak before the next band, per band; ``T`` tail
         samples only with the residual search, :meth:`_tail_samples`), merged in order by rank: a
@@ -1340,7 +1403,7 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         if not slots:
             return
         # samples moved to the extrema of B + R (:meth:`_snapped_slots`) are data, not
-        # formulas: slot entries TAILS.. hold them (the full-band layout only)
+        # formulas: :attr:`Slot.moved` holds them (the full-band layout only)
         moved = self._snaps()
         # (isolated rays?, K): rays of isolated bands get their own groups with fewer samples
         layouts = [(False, self.cfg.band_samples)]
@@ -1368,7 +1431,7 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
                 band = q // per
                 j = q % per
                 rows = dr.gather(mi.UInt32, sub, r)
-                sl = [tuple(dr.gather(mi.Float, v, rows) for v in slots[b]) for b in range(g)]
+                sl = [slots[b].map(lambda v: dr.gather(mi.Float, v, rows)) for b in range(g)]
                 k1, k2 = self._halves(kk)
                 # this lane's own sample value: entry, K/2 samples in (lo, mid], K/2 in (mid, hi],
                 # the first tail in (hi, extra), extra, the second tail in (extra, tail end], and
@@ -1380,19 +1443,19 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
                 parts = [self._sub_bands(sl[b], kk, kp, kq, snap) for b in range(g)]
                 t = mi.Float(0.0)
                 for b in range(g):
-                    e0, lo, mid, hi, ex, pk = sl[b][:6]
                     tb = mi.Float(0.0)
                     for first, count_, value, _ in parts[b]:
                         jj = dr.minimum(dr.maximum(j, first), first + count_ - 1) - first + 1
                         tb = dr.select((j >= first) & (j < first + count_), value(jj), tb)
-                    tb = dr.select(j == 0, e0, dr.select(j == j_ex, ex, dr.select(is_peak, pk, tb)))
+                    tb = dr.select(j == 0, sl[b].entry,
+                                   dr.select(j == j_ex, sl[b].extra, dr.select(is_peak, sl[b].peak, tb)))
                     t = dr.select(band == b, tb, t)
                 # rank = own index in its band (0 for a peak) + the samples of the other groups
                 # that come before; ties: lower band first, a band's samples before any peak of
                 # the same or a later band
                 rank = dr.select(is_peak, 0, mi.UInt32(j))
                 for b in range(g):
-                    e0, lo, mid, hi, ex, pk = sl[b][:6]
+                    e0, ex, pk = sl[b].entry, sl[b].extra, sl[b].peak
                     incl = dr.select(is_peak, mi.UInt32(b) <= band, mi.UInt32(b) < band)
 
                     def before(x):
@@ -1411,14 +1474,14 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
                 at_deepest = mi.Bool(False)
                 for b in range(g):
                     hb = dr.gather(mi.Bool, slot_hit[b], rows)
-                    at_deepest = dr.select(band == b, hb & (t == sl[b][10]), at_deepest)
+                    at_deepest = dr.select(band == b, hb & (t == sl[b].deepest), at_deepest)
                 deepest = dr.zeros(mi.UInt32, na * m)
                 dr.scatter(deepest, dr.select(at_deepest, band, g), r * m + rank)
                 # gap peaks: the two crossing bands and the envelope weight of the first
                 lam, pa, pb = mi.Float(-1.0), mi.Float(0.0), mi.Float(0.0)
                 for b in range(g - 1):
                     here = is_peak & (band == b)
-                    lam, pa, pb = [dr.select(here, v, x) for v, x in zip(sl[b][6:9], (lam, pa, pb))]
+                    lam, pa, pb = [dr.select(here, v, x) for v, x in zip((sl[b].peak_lambda, sl[b].peak_a, sl[b].peak_b), (lam, pa, pb))]
                 peak_lam = dr.full(mi.Float, -1.0, na * m)
                 dr.scatter(peak_lam, lam, r * m + rank)
                 peak_a, peak_b = dr.zeros(mi.UInt32, na * m), dr.zeros(mi.UInt32, na * m)
@@ -1431,4 +1494,4 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
                     own = dr.zeros(mi.UInt32, na * m)
                     dr.scatter(own, band, r * m + rank)
             # yield outside ``suspend_grad``: the consumer differentiates the integral
-            yield rays, ts, m, active, inst, deepest, (peak_a, peak_b, peak_lam), own
+            yield SampleGroup(rays, ts, m, active, inst, deepest, (peak_a, peak_b, peak_lam), own)

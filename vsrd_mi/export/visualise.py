@@ -39,7 +39,7 @@ from vsrd_plugins.silhouette import instance_colours
 
 from ..batch.atomic import atomic_write_bytes
 from ..geometry.boxes import BOX_EDGES, Box3D
-from ..geometry.camera import NEAR_PLANE, box_to_2d, project, transform_points
+from ..geometry.camera import NEAR_PLANE, box_to_2d, project
 from ..geometry.iou3d import bev_footprint
 from ..optimise.autolabel import box_in_frame
 from ..optimise.losses import to_float

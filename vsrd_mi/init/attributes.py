@@ -301,7 +301,7 @@ def _refine_rectangle_angle(xz: np.ndarray, psi: float, cfg: OrientationConfig) 
     """
     J = np.array([[0.0, 1.0], [-1.0, 0.0]])           # length axis -> width axis
     for _ in range(cfg.refine_iterations):
-        dists, groups = [], []
+        dists = []
         for k, ax in enumerate(_axes(psi)):
             proj = xz @ ax
             lo, hi = np.percentile(proj, [cfg.edge_percentile, 100.0 - cfg.edge_percentile])
