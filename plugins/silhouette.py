@@ -109,7 +109,9 @@ maxima and descents of ``f``, which is what the two sampling strategies target:
   the band's minimum sample there, and ``residual_tail`` more samples per band cover the rest of
   the chord (half between a reach past a hit's entry and the minimum, half from the band's end
   to the enlarged box's exit; where the band already ends at its minimum, both halves share the
-  rest of the chord), where ``B + R`` can dip again. The opacity telescopes over each
+  rest of the chord; a miss whose minimum lies far into its chord puts it at its extra sample
+  and spreads the band before it, :meth:`~VSRDSilhouetteIntegrator._lengthwise_miss`), where
+  ``B + R`` can dip again. The opacity telescopes over each
   monotone run of ``f``, so with the field every band and tail sample moves to a local extremum
   of ``B + R`` that a detached scan (``residual_tail_scan`` points per sample) finds in its
   own cell (:meth:`~VSRDSilhouetteIntegrator._snapped_positions`). Rays that meet no enlarged box
@@ -990,6 +992,7 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
                     split = extra <= hi
                     deepest_t = dr.select(split, hi, extra)
                     extra = dr.select(split, dr.maximum(0.5 * (hi + tail), hi), extra)
+                    mid, hi, extra, deepest_t = self._lengthwise_miss(hb, e0, c, mid, hi, extra, tail, deepest_t)
                 anchors.append([dr.select(valid, v, cfg.far) for v in (e0, lo, mid, hi, extra)])
                 deepests.append(dr.select(valid, deepest_t, cfg.far))
                 tails.append(dr.select(valid, tail, cfg.far))
@@ -1006,6 +1009,36 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
             isolated = self._isolated(picked, count)
             dr.eval(count, slots, slot_inst, slot_hit, isolated)
         return ray_idx, count, slots, slot_inst, slot_hit, isolated
+
+    def _lengthwise_miss(self, hit: mi.Bool, e0: mi.Float, c: mi.Float, mid: mi.Float, hi: mi.Float,
+                         extra: mi.Float, tail: mi.Float, deepest: mi.Float) -> tuple[mi.Float, ...]:
+        """With the tail samples, the anchors ``(mid, hi, extra, deepest)`` of a miss band whose
+        least ``B + R`` ``c`` lies far into its chord ``[e0, tail]``.
+
+        A miss band normally ends its first half at ``c`` (``k1 = K/2`` cells from the enlarged
+        box's entry), and its second half and the two tails share the rest of the chord. A ray
+        that grazes the box lengthwise and leaves it soon after its least ``B + R`` then has
+        ``k1`` wide cells before ``c``, where ``B + R`` can have further extrema that a cell's one
+        movable sample cannot all take, and its tails stack on the chord's end (integrator
+        tests' random 2-3-box residual scenes: labels off by up to 0.0135). Such a band puts
+        ``c`` at its extra sample instead, with the ``K + T/2 + 1`` cells of the band and the
+        first tail spread evenly before it and the second tail after it; of the two layouts it
+        takes the one whose widest cell is narrower. 112 random 2-3-box scenes (256 rays each):
+        rays above 0.01 in 7 -> 6 scenes, mean of the scenes' max error 0.0054 -> 0.0052; it can
+        cost accuracy where another box's band overlaps the shortened side (one scene < 0.008 ->
+        0.0107). The worst scene (0.0294, unchanged) is a hit whose tail cell inside the box
+        holds a maximum and a minimum of ``B + R``."""
+        k1, k2 = self._halves(self.cfg.band_samples)
+        kp, kq = self._tail_samples()
+        before, after = dr.maximum(c - e0, 0.0), dr.maximum(tail - c, 0.0)
+        n_before = k1 + k2 + kp + 1
+        widest_now = dr.maximum(dr.maximum(before * (1.0 / k1), (hi - mid) * (1.0 / k2)),
+                                (tail - hi) * (1.0 / (kp + 1 + kq)))
+        widest_lengthwise = dr.maximum(before * (1.0 / n_before), after * (1.0 / kq))
+        lengthwise = ~hit & (widest_lengthwise < widest_now)
+        return (dr.select(lengthwise, dr.fma(before, k1 / n_before, e0), mid),
+                dr.select(lengthwise, dr.fma(before, (k1 + k2) / n_before, e0), hi),
+                dr.select(lengthwise, c, extra), dr.select(lengthwise, c, deepest))
 
     def _isolated(self, picked: list[Picked], count: mi.UInt32) -> mi.Bool:
         """Rays whose enlarged-box intervals are pairwise disjoint (no residual field; all rays
