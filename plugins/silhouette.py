@@ -352,6 +352,10 @@ class Slot(NamedTuple):
         """The slot with ``f`` applied to every array (the moved positions included)."""
         return Slot(*(f(v) for v in self[:-1]), tuple(f(v) for v in self.moved))
 
+    def arrays(self) -> tuple:
+        """Every array as a plain tuple (``dr.eval`` does not look inside a ``NamedTuple``)."""
+        return (*self[:-1], *self.moved)
+
 
 class SampleGroup(NamedTuple):
     """The adaptive samples of the rays with one band count and layout
@@ -1007,7 +1011,7 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
                 slots = [sl._replace(moved=tuple(x for part in parts for x in part)) for sl, parts in
                          zip(slots, zip(*self._snapped_slots(sdf, slots)))]
             isolated = self._isolated(picked, count)
-            dr.eval(count, slots, slot_inst, slot_hit, isolated)
+            dr.eval(count, [sl.arrays() for sl in slots], slot_inst, slot_hit, isolated)
         return ray_idx, count, slots, slot_inst, slot_hit, isolated
 
     def _lengthwise_miss(self, hit: mi.Bool, e0: mi.Float, c: mi.Float, mid: mi.Float, hi: mi.Float,

@@ -320,6 +320,26 @@ def test_residual_sparse_gradients_keep_the_gradient(monkeypatch):
     assert frozen and frozen[0] > 0.5, frozen
 
 
+@pytest.mark.parametrize("residual", [False, True])
+def test_band_search_returns_evaluated_arrays(residual):
+    """``_adaptive_bands`` evaluates every per-ray array it returns in one go: the sample
+    layout gathers from them per band count, and a gather from an unevaluated array launches a
+    kernel of its own (``dr.eval`` does not look inside the ``Slot`` named tuples: passing them
+    as they are cost 18 more kernels per 1000-ray step, 115 with the residual field, and a
+    16k-ray step 0.05 -> 0.11 s)."""
+    rng = np.random.default_rng(3)
+    scene = random_scene(rng, 3)
+    o, d, t = training_rays(rng, scene, 64)
+    it = make(scene, residual=residual)
+    with dr.suspend_grad():
+        ray_idx, count, slots, slot_inst, slot_hit, isolated = it._adaptive_bands(
+            it.field.decode(), *to_mi(o, d, t))
+    assert slots and (len(slots[0].moved) > 0) == residual
+    arrays = [count, isolated, *slot_inst, *slot_hit] + [x for sl in slots for x in sl.arrays()]
+    assert all(x.state in (dr.VarState.Evaluated, dr.VarState.Literal) for x in arrays), \
+        [str(x.state) for x in arrays]
+
+
 def test_residual_tail_samples_do_not_pile_up():
     """With the residual field a band that already ends at its minimum (every miss, and a hit
     whose least ``B + R`` is within a reach of its entry) splits the rest of the chord between
