@@ -1185,6 +1185,9 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
             ol, dl, half = [dr.gather(type(x), x, pair) for x in flat]
             pl = ol + t * dl
             f = box_sdf_local(pl, half)
+            # the points and box SDFs in one kernel (the instances' gathers below would evaluate
+            # each coordinate in a kernel of its own)
+            dr.eval(pl, f)
             # per instance its pairs in every block, as one expression (a concatenation would
             # launch a kernel per block)
             lanes = []
