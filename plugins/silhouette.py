@@ -1275,6 +1275,9 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
                 take = score > best
                 best, pos = dr.select(take, score, best), dr.select(take, vertex, pos)
             out.append(pos)
+        # every moved position in one kernel (the per-slot gathers below would evaluate each
+        # alone, re-reading the scan values once per position)
+        dr.eval(out)
         no = dr.opaque(mi.UInt32, n)
         return [[dr.gather(mi.Float, p, dr.arange(mi.UInt32, n) + no * s_) for p in out] for s_ in range(n_slots)]
 
