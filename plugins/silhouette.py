@@ -959,6 +959,9 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
                 picked.append(Picked(valid, e0, e1, ts, c, b1, hb))
                 slot_inst.append(kb)
             slot_views = [self._slot_view(views, kb) for kb in slot_inst]
+            # the picked boxes and their views in one kernel (read per slot below; ``Picked`` is
+            # a named tuple, which ``dr.eval`` does not look inside)
+            dr.eval(count, slot_inst, [tuple(pk) for pk in picked], slot_views)
             # with the residual the instance SDF B + R has its minimum near, not at, the box's:
             # the band ends there instead (the gap peaks and the slot order stay the box's)
             fmin = sdf = None
@@ -1002,6 +1005,10 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
                 tails.append(dr.select(valid, tail, cfg.far))
                 slot_hit.append(valid & hb)
                 slot_ts.append(dr.select(valid, ts, cfg.far))
+            # every slot's anchors in one kernel: the searches and scans below read them per
+            # slot (a concatenation scatters each alone), which evaluated each anchor in a kernel
+            # of its own, recomputing the slot selection every time
+            dr.eval(anchors, deepests, tails, slot_hit, slot_ts)
             peaks = self._gap_peaks(slot_views, slot_ts, count)
             slots = [Slot(*anchor, peak=dr.select(pk.ok, pk.t, anchor[4]),
                           peak_lambda=dr.select(pk.ok, pk.lam, -1.0), peak_a=pk.a, peak_b=pk.b,
