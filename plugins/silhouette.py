@@ -159,7 +159,7 @@ Usage
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields, replace
 from typing import Iterator, NamedTuple
 
 import drjit as dr
@@ -306,9 +306,11 @@ class _NextSample(dr.CustomOp):
         return "NextSample"
 
 
-class Picked(NamedTuple):
+@dataclass(frozen=True)
+class Picked:
     """Per ray, the box of one band slot as :meth:`VSRDSilhouetteIntegrator._adaptive_bands`
-    picks it (detached arrays over the rays)."""
+    picks it (detached arrays over the rays). A dataclass, not a named tuple: ``dr.eval``
+    looks inside dataclasses, not inside named tuples."""
 
     valid: mi.Bool  #: the ray has this slot (it meets that many enlarged boxes)
     entry: mi.Float  #: enlarged box entry along the ray
@@ -329,9 +331,11 @@ class GapPeak(NamedTuple):
     b: mi.Float  #: the slot falling from it
 
 
-class Slot(NamedTuple):
+@dataclass(frozen=True)
+class Slot:
     """Per ray, one band's detached sample anchors (:meth:`VSRDSilhouetteIntegrator._adaptive_bands`;
-    arrays over the rays, an invalid slot at ``far``)."""
+    arrays over the rays, an invalid slot at ``far``). A dataclass, so ``dr.eval`` evaluates
+    every array of it (it does not look inside named tuples)."""
 
     entry: mi.Float  #: enlarged box entry: the band's first sample
     lo: mi.Float  #: start of the band's first half
@@ -350,11 +354,12 @@ class Slot(NamedTuple):
 
     def map(self, f) -> "Slot":
         """The slot with ``f`` applied to every array (the moved positions included)."""
-        return Slot(*(f(v) for v in self[:-1]), tuple(f(v) for v in self.moved))
+        return Slot(**{fd.name: f(getattr(self, fd.name)) for fd in fields(self) if fd.name != "moved"},
+                    moved=tuple(f(v) for v in self.moved))
 
     def arrays(self) -> tuple:
-        """Every array as a plain tuple (``dr.eval`` does not look inside a ``NamedTuple``)."""
-        return (*self[:-1], *self.moved)
+        """Every array of the slot, the moved positions last."""
+        return (*(getattr(self, fd.name) for fd in fields(self) if fd.name != "moved"), *self.moved)
 
 
 class SampleGroup(NamedTuple):
@@ -959,9 +964,8 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
                 picked.append(Picked(valid, e0, e1, ts, c, b1, hb))
                 slot_inst.append(kb)
             slot_views = [self._slot_view(views, kb) for kb in slot_inst]
-            # the picked boxes and their views in one kernel (read per slot below; ``Picked`` is
-            # a named tuple, which ``dr.eval`` does not look inside)
-            dr.eval(count, slot_inst, [tuple(pk) for pk in picked], slot_views)
+            # the picked boxes and their views in one kernel (read per slot below)
+            dr.eval(count, slot_inst, picked, slot_views)
             # with the residual the instance SDF B + R has its minimum near, not at, the box's:
             # the band ends there instead (the gap peaks and the slot order stay the box's)
             fmin = sdf = None
@@ -970,7 +974,8 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
                 fmin = self._residual_minima(sdf, slot_views, count, picked)
             use_tail = self._tail_samples()[1] > 0
             anchors, slot_hit, slot_ts, tails, deepests = [], [], [], [], []
-            for b, (valid, e0, e1, ts, c, b1, hb) in enumerate(picked):
+            for b, pk in enumerate(picked):
+                valid, e0, e1, ts, c, hb = pk.valid, pk.entry, pk.exit, pk.tstar, pk.centre, pk.hit
                 if fmin is not None:
                     c = dr.select(hb, c, fmin[b])
                     ts_band = fmin[b]
@@ -1015,10 +1020,10 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
                           tail_end=tail, deepest=deep)
                      for anchor, pk, tail, deep in zip(anchors, peaks, tails, deepests)]
             if self._snaps():  # band and tail samples at the extrema of B + R
-                slots = [sl._replace(moved=tuple(x for part in parts for x in part)) for sl, parts in
+                slots = [replace(sl, moved=tuple(x for part in parts for x in part)) for sl, parts in
                          zip(slots, zip(*self._snapped_slots(sdf, slots)))]
             isolated = self._isolated(picked, count)
-            dr.eval(count, [sl.arrays() for sl in slots], slot_inst, slot_hit, isolated)
+            dr.eval(count, slots, slot_inst, slot_hit, isolated)
         return ray_idx, count, slots, slot_inst, slot_hit, isolated
 
     def _lengthwise_miss(self, hit: mi.Bool, e0: mi.Float, c: mi.Float, mid: mi.Float, hi: mi.Float,

@@ -324,9 +324,9 @@ def test_residual_sparse_gradients_keep_the_gradient(monkeypatch):
 def test_band_search_returns_evaluated_arrays(residual):
     """``_adaptive_bands`` evaluates every per-ray array it returns in one go: the sample
     layout gathers from them per band count, and a gather from an unevaluated array launches a
-    kernel of its own (``dr.eval`` does not look inside the ``Slot`` named tuples: passing them
-    as they are cost 18 more kernels per 1000-ray step, 115 with the residual field, and a
-    16k-ray step 0.05 -> 0.11 s)."""
+    kernel of its own (``dr.eval`` does not look inside named tuples: while ``Slot`` was one,
+    passing the slots as they were cost 18 more kernels per 1000-ray step, 115 with the residual
+    field, and a 16k-ray step 0.05 -> 0.11 s)."""
     rng = np.random.default_rng(3)
     scene = random_scene(rng, 3)
     o, d, t = training_rays(rng, scene, 64)
