@@ -29,6 +29,13 @@ r"""Instance-aware NeuS silhouette integrator (``vsrd_silhouette``).
      ``B``), tail samples per band covering the rest of the box's chord, where ``B + R``
      can dip again (0: none), and detached scan points per band and tail sample that move it
      to a local extremum of ``B + R`` in its cell (0: none). (Default: 4, 0, 12, 3)
+ * - residual_grid
+   - |float|
+   - Adaptive sampling with the residual: the scans above and the detached values that sort
+     samples into frozen and not (see ``residual_sparse_gradients``) read ``R`` interpolated
+     from exact values on a grid along each band's chord, spaced ``residual_grid`` radians of the
+     encoding's highest frequency apart (0: evaluate ``R`` at every scan point and sample).
+     (Default: 0.5)
  * - residual_sparse_gradients
    - |bool|
    - Adaptive sampling with the residual: samples strictly inside a monotone run of the scene
@@ -114,7 +121,9 @@ maxima and descents of ``f``, which is what the two sampling strategies target:
   ``B + R`` can dip again. The opacity telescopes over each
   monotone run of ``f``, so with the field every band and tail sample moves to a local extremum
   of ``B + R`` that a detached scan (``residual_tail_scan`` points per sample) finds in its
-  own cell (:meth:`~VSRDSilhouetteIntegrator._snapped_positions`). Rays that meet no enlarged box
+  own cell (:meth:`~VSRDSilhouetteIntegrator._snapped_positions`); those scans read ``R``
+  interpolated from a grid of exact values along the chord (``R`` is smooth, ``B`` exact,
+  :meth:`~VSRDSilhouetteIntegrator._chord_grid`). Rays that meet no enlarged box
   return background at zero cost (they are compacted away). A ray whose enlarged-box intervals
   are disjoint (isolated, :meth:`~VSRDSilhouetteIntegrator._isolated`) has at each band sample
   every other box beyond its culling margin, so its labels are the band's opacity, which
@@ -159,6 +168,8 @@ Usage
 
 from __future__ import annotations
 
+import math
+
 from dataclasses import dataclass, fields, replace
 from typing import Iterator, NamedTuple
 
@@ -191,6 +202,8 @@ GAP_WINDOW = 4
 #: other in the graph, which froze a sample the graph saw as the minimum (box gradient off by
 #: 0.25 % relative on a 3-box test scene instead of < 0.05 %).
 MONOTONE_TOLERANCE = 1e-5
+#: Fewest grid points per chord of :meth:`VSRDSilhouetteIntegrator._grid_sdf`.
+GRID_MIN_POINTS = 4
 
 
 def golden_probes(a, b) -> tuple[mi.Float, mi.Float]:
@@ -362,6 +375,59 @@ class Slot:
         return (*(getattr(self, fd.name) for fd in fields(self) if fd.name != "moved"), *self.moved)
 
 
+@dataclass(frozen=True)
+class ChordGrid:
+    """Exact residuals ``R`` on a grid over each (slot, ray) pair's enlarged-box chord, and
+    ``F = B + R`` from them with ``B`` exact and ``R`` interpolated (Catmull-Rom: C1, exact for
+    quadratics), built by :meth:`VSRDSilhouetteIntegrator._chord_grid` (detached arrays; pairs
+    slot-major, ``rays`` per slot)."""
+
+    views: tuple  #: per pair the box-local ray origin, direction and half size
+    start: mi.Float  #: per pair the chord's start (the enlarged box's entry)
+    inv_step: mi.Float  #: per pair 1 / grid spacing (0 for an empty chord)
+    points: mi.UInt32  #: per pair its grid points (0: an invalid slot)
+    first: mi.UInt32  #: per pair the index of its first grid point in ``r``
+    r: mi.Float  #: the residual at every grid point
+    rays: int  #: rays per slot
+
+    def residual(self, pair: mi.UInt32, t: mi.Float) -> mi.Float:
+        """Interpolated ``R`` of ``pair`` at ray parameter ``t`` (the end values past the chord)."""
+        last = dr.maximum(dr.gather(mi.UInt32, self.points, pair), 2) - 1
+        u = dr.clip((t - dr.gather(mi.Float, self.start, pair)) * dr.gather(mi.Float, self.inv_step, pair),
+                    0.0, mi.Float(last))
+        i = dr.minimum(mi.UInt32(u), last - 1)
+        f = u - mi.Float(i)
+        at = dr.gather(mi.UInt32, self.first, pair) + i
+        r1, r2 = dr.gather(mi.Float, self.r, at), dr.gather(mi.Float, self.r, at + 1)
+        # linear extrapolation at the chord's ends
+        r0 = dr.select(i > 0, dr.gather(mi.Float, self.r, dr.select(i > 0, at - 1, at)), 2.0 * r1 - r2)
+        r3 = dr.select(i + 1 < last, dr.gather(mi.Float, self.r, dr.select(i + 1 < last, at + 2, at)),
+                       2.0 * r2 - r1)
+        c1 = 0.5 * (r2 - r0)
+        c2 = r0 - 2.5 * r1 + 2.0 * r2 - 0.5 * r3
+        c3 = 0.5 * (r3 - r0) + 1.5 * (r1 - r2)
+        return dr.fma(f, dr.fma(f, dr.fma(f, c3, c2), c1), r1)
+
+    def sdf(self, pair: mi.UInt32, t: mi.Float, reach=None) -> mi.Float:
+        """``B`` exact plus the interpolated ``R`` of ``pair`` at ``t``; with ``reach``, ``R``
+        only where ``B <= reach`` (the rule of :meth:`~vsrd_plugins.sdf.InstanceField.lane_sdfs`)."""
+        ol, dl, half = [dr.gather(type(x), x, pair) for x in self.views]
+        b = box_sdf_local(ol + t * dl, half)
+        r = self.residual(pair, t)
+        if reach is not None:
+            r = dr.select(b <= reach, r, 0.0)
+        return b + r
+
+    def scan(self, t: mi.Float, reps: int) -> mi.Float:
+        """``F`` at ``reps`` pair-major blocks of ray parameters (the contract of
+        :meth:`VSRDSilhouetteIntegrator._pair_sdf`'s ``sdf``), evaluated."""
+        width = dr.width(self.start)
+        pair = dr.arange(mi.UInt32, dr.width(t)) % dr.opaque(mi.UInt32, width)
+        out = self.sdf(pair, t)
+        dr.eval(out)
+        return out
+
+
 class SampleGroup(NamedTuple):
     """The adaptive samples of the rays with one band count and layout
     (:meth:`VSRDSilhouetteIntegrator._adaptive_groups`)."""
@@ -376,6 +442,7 @@ class SampleGroup(NamedTuple):
     #: (``-1``: no peak), see :meth:`VSRDSilhouetteIntegrator._gap_peaks`
     peak: tuple
     own: mi.UInt32 | None  #: per sample its band in an isolated group (``None`` otherwise)
+    rows: mi.UInt32  #: the group's rays as indices into the band search's rays (its pairs' rays)
 
 
 def pick(values: list[mi.Float], i: mi.UInt32) -> mi.Float:
@@ -418,6 +485,10 @@ class SamplingConfig:
     #: :meth:`VSRDSilhouetteIntegrator._sub_sample` puts them); see
     #: :meth:`VSRDSilhouetteIntegrator._snapped_positions`.
     residual_tail_scan: int = 3
+    #: With the residual search: exact residual values per band spaced over the enlarged box's
+    #: chord, interpolated for the scans (0: every scan point evaluates the residual); see
+    #: :meth:`VSRDSilhouetteIntegrator._grid_sdf`.
+    residual_grid: float = 0.5
     #: With the residual field: samples whose gradient vanishes (inside a monotone run of the
     #: scene SDF, one instance near) keep their values but leave the AD graph; see
     #: :meth:`VSRDSilhouetteIntegrator._frozen_lanes`.
@@ -447,6 +518,7 @@ class SamplingConfig:
             residual_golden=int(props.get("residual_golden", d.residual_golden)),
             residual_tail=int(props.get("residual_tail", d.residual_tail)),
             residual_tail_scan=int(props.get("residual_tail_scan", d.residual_tail_scan)),
+            residual_grid=float(props.get("residual_grid", d.residual_grid)),
             residual_sparse_gradients=bool(props.get("residual_sparse_gradients", d.residual_sparse_gradients)),
             isolated_rays=bool(props.get("isolated_rays", d.isolated_rays)),
             isolated_band_samples=int(props.get("isolated_band_samples", d.isolated_band_samples)),
@@ -460,7 +532,8 @@ class SamplingConfig:
             raise ValueError(f"vsrd_silhouette: sampling must be 'adaptive' or 'dense', got {cfg.sampling!r}")
         if (cfg.band_samples < 2 or cfg.max_bands < 0 or cfg.coarse_samples < 2 or cfg.fine_samples < 1
                 or cfg.residual_scan == 1 or cfg.residual_scan < 0 or cfg.residual_golden < 0
-                or cfg.residual_tail < 0 or cfg.residual_tail_scan < 0 or cfg.isolated_band_samples < 1):
+                or cfg.residual_tail < 0 or cfg.residual_tail_scan < 0 or cfg.residual_grid < 0
+                or cfg.isolated_band_samples < 1):
             raise ValueError("vsrd_silhouette: sample counts too small")
         if not (0.0 <= cfg.near < cfg.far):
             raise ValueError("vsrd_silhouette: need 0 <= near < far")
@@ -562,16 +635,21 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         """Band samples of the rays that meet an enlarged box; at each sample only the instances
         whose enlarged box the ray meets (one SDF evaluation per lane and met instance)."""
         n_rays, n_inst = dr.width(o.x), self.field.n
-        groups = list(self._adaptive_groups(dec, o, d, time))
+        bands = self._adaptive_bands(dec, o, d, time)
+        grid = bands[-1]
+        groups = list(self._adaptive_groups(dec, o, d, time, bands))
         if not groups:
             return None
         # one flat list of (point, time, instance) lanes for every group and band slot, so the
         # SDF (and the residual MLP) is evaluated in one batch
         with dr.suspend_grad():
-            ray_lanes, ts, insts, deep = [], [], [], []
-            for rays, t, m, _, slot_inst, deepest, _, own in groups:
+            ray_lanes, ts, insts, deep, pairs = [], [], [], [], []
+            for rays, t, m, _, slot_inst, deepest, _, own, rows in groups:
                 r = dr.arange(mi.UInt32, dr.width(t)) // m
                 ray_of = dr.gather(mi.UInt32, rays, r)
+                if grid is not None:  # lanes of isolated groups need no pairs: the field is on
+                    row_of = dr.gather(mi.UInt32, rows, r)
+                    pairs += [row_of + dr.opaque(mi.UInt32, b * grid.rays) for b in range(len(slot_inst))]
                 if own is not None:  # isolated rays: each sample's own band's instance only
                     ray_lanes.append(ray_of)
                     ts.append(t)
@@ -587,7 +665,8 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
                     insts.append(dr.gather(mi.UInt32, ib, r))
                     deep.append(dr.select(deepest == b, 1, 0))
             ray_all = concat(ray_lanes)
-            p_all, t_all, d_all = self._positions(ray_all, o, d, time, concat(ts), 1)
+            s_all = concat(ts)
+            p_all, t_all, d_all = self._positions(ray_all, o, d, time, s_all, 1)
             i_all = concat(insts)
             # lanes at the deepest point of their ray in their instance's box (ridge gradients)
             deep = dr.compress(concat(deep) > 0)
@@ -601,13 +680,17 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         values = frozen = None
         if weights is not None and self.cfg.residual_sparse_gradients:
             with dr.suspend_grad():
-                values = self.field.lane_sdfs(dec, p_all, t_all, i_all, weights, **kw)
+                if grid is not None:
+                    values = self._grid_values(dec, grid, concat(pairs), s_all, p_all, t_all, i_all,
+                                               groups, deep, weights, kw)
+                else:
+                    values = self.field.lane_sdfs(dec, p_all, t_all, i_all, weights, **kw)
                 frozen = self._frozen_lanes(values, groups, deep)
         f_all = self.field.lane_sdfs(dec, p_all, t_all, i_all, weights, ridge=ridge, values=values,
                                      frozen=frozen, **kw)
         flat = dr.zeros(mi.Float, n_rays * n_inst)
         start = 0
-        for rays, t, m, active, slot_inst, _, peak, own in groups:
+        for rays, t, m, active, slot_inst, _, peak, own, _ in groups:
             w = dr.width(t)
             with dr.suspend_grad():
                 lane = dr.arange(mi.UInt32, w)
@@ -628,6 +711,52 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         idx = dr.arange(mi.UInt32, n_rays) * n_inst
         return [dr.gather(mi.Float, flat, idx + k) for k in range(n_inst)]
 
+    def _grid_values(self, dec, grid: ChordGrid, pairs: mi.UInt32, s: mi.Float, p: mi.Point3f, time: mi.Float,
+                     inst: mi.UInt32, groups: list[SampleGroup], deep: mi.UInt32, weights, kw: dict) -> mi.Float:
+        """Detached SDF values of :meth:`_render_adaptive`'s lanes (``pairs``: each lane's (slot,
+        ray) pair of ``grid``; ``s``: its ray parameter; ``p``, ``time``, ``inst``: its point,
+        ray time and instance) for :meth:`_frozen_lanes`: ``B`` exact and ``R`` interpolated from
+        the chord grid, exact where it can matter.
+
+        A frozen lane's value drops out of the integral (it lies strictly inside a monotone run
+        of ``f``, whose opacity telescopes to the run's ends), as long as it keeps the run
+        monotone; the lanes that keep their gradient are the run's ends and get exact values in
+        the AD graph. So the lanes that stay in the graph and their frozen neighbours (whose
+        order against them decides where a run ends) get exact values, and the lanes are
+        sorted into frozen and not again with them. Interpolated values elsewhere: 6 boxes /
+        16k rays, 0.25M exact residuals instead of 1.06M, interpolation error p99 5e-5 m,
+        max 3e-3 m.
+        """
+        values = grid.sdf(pairs, s, kw["reach"])
+        frozen = self._frozen_lanes(values, groups, deep)
+        border = self._run_ends(frozen, groups)
+        idx = dr.compress(border)
+        if dr.width(idx):
+            exact = self.field.lane_sdfs(dec, dr.gather(type(p), p, idx), dr.gather(mi.Float, time, idx),
+                                         dr.gather(mi.UInt32, inst, idx), weights, **kw)
+            dr.scatter(values, exact, idx)
+        dr.eval(values)
+        return values
+
+    @staticmethod
+    def _run_ends(frozen: mi.Bool, groups: list[SampleGroup]) -> mi.Bool:
+        """Lanes of :meth:`_render_adaptive`'s flat layout that are not ``frozen``
+        (:meth:`_frozen_lanes`) or neighbour such a lane along their ray."""
+        border = dr.zeros(mi.Bool, dr.width(frozen))
+        start = 0
+        for grp in groups:
+            w, m = dr.width(grp.t), grp.m
+            lane = dr.arange(mi.UInt32, w)
+            j = lane % m
+            for _ in range(1 if grp.own is not None else len(grp.inst)):
+                at = lane + dr.opaque(mi.UInt32, start)
+                live = ~dr.gather(mi.Bool, frozen, at)
+                live |= (j > 0) & ~dr.gather(mi.Bool, frozen, dr.select(j > 0, at - 1, at))
+                live |= (j < m - 1) & ~dr.gather(mi.Bool, frozen, dr.select(j < m - 1, at + 1, at))
+                dr.scatter(border, live, at)
+                start += w
+        return border
+
     def _frozen_lanes(self, values: mi.Float, groups: list[SampleGroup], deep: mi.UInt32) -> mi.Bool:
         """Lanes of :meth:`_render_adaptive`'s flat layout whose SDF value cannot carry a
         gradient of the integral (detached ``values`` of every lane in).
@@ -641,6 +770,7 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         vanishes with the opacity's. Those samples keep their values but leave the AD graph
         (and the residual MLP's backward pass). Ends of rays, extrema, ties, the deepest points
         (ridge gradients) and every sample next to a mixed one stay.
+
         """
         frozen = dr.zeros(mi.Bool, dr.width(values))
         margin = dr.detach(self._cull_margin())
@@ -913,7 +1043,7 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
             dr.eval(any_act, met, views, entry, exit_, act, hit, tin, tout)
             ray_idx = dr.compress(any_act)
             if dr.width(ray_idx) == 0:
-                return ray_idx, None, [], [], [], None
+                return ray_idx, None, [], [], [], None, None
             # slots (and gaps between them) only up to the most boxes a ray meets: their
             # searches run for every ray. Kernels are shaped by this count (at most one set per
             # count, compiled once each)
@@ -968,9 +1098,13 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
             dr.eval(count, slot_inst, picked, slot_views)
             # with the residual the instance SDF B + R has its minimum near, not at, the box's:
             # the band ends there instead (the gap peaks and the slot order stay the box's)
-            fmin = sdf = None
+            fmin = sdf = grid = None
             if self._residual_search():  # F = B + R of every (slot, ray) pair, built once
-                sdf = self._pair_sdf(slot_views, slot_inst, count)
+                if cfg.residual_grid > 0:
+                    grid = self._chord_grid(slot_views, slot_inst, count, picked)
+                    sdf = grid.scan
+                else:
+                    sdf = self._pair_sdf(slot_views, slot_inst)
                 fmin = self._residual_minima(sdf, slot_views, count, picked)
             use_tail = self._tail_samples()[1] > 0
             anchors, slot_hit, slot_ts, tails, deepests = [], [], [], [], []
@@ -1024,7 +1158,7 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
                          zip(slots, zip(*self._snapped_slots(sdf, slots)))]
             isolated = self._isolated(picked, count)
             dr.eval(count, slots, slot_inst, slot_hit, isolated)
-        return ray_idx, count, slots, slot_inst, slot_hit, isolated
+        return ray_idx, count, slots, slot_inst, slot_hit, isolated, grid
 
     def _lengthwise_miss(self, hit: mi.Bool, e0: mi.Float, c: mi.Float, mid: mi.Float, hi: mi.Float,
                          extra: mi.Float, tail: mi.Float, deepest: mi.Float) -> tuple[mi.Float, ...]:
@@ -1175,48 +1309,79 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
                 self._snapped_positions(sdf, lo, mid, k1, k1 - 1, True) if k1 > 1 else empty,
                 self._snapped_positions(sdf, mid, hi, k2, k2) if k2 else empty]
 
-    def _pair_sdf(self, slot_views, slot_inst, count):
+    def _pair_sdf(self, slot_views, slot_inst):
         """``sdf(t, reps)``: the instance SDF ``F = B + R`` of every (slot, ray) pair at ``reps``
         ray parameters per pair (``t`` holds ``reps`` pair-major blocks of the slot-major pairs),
-        detached, the residual of every instance in one batched evaluation; invalid slots get
-        their box's ``B`` only."""
-        n_slots, n = len(slot_views), dr.width(count)
-        weights = self.field.residual_weights()
-        # (slot, ray) pairs flattened slot-major; per instance the valid pairs, once
-        flat = [concat([sv[i] for sv in slot_views]) for i in range(3)]
+        detached and exact (``residual_grid = 0``; :class:`ChordGrid` interpolates ``R``
+        instead); invalid slots get their box's ``B`` only."""
+        flat = tuple(concat([sv[i] for sv in slot_views]) for i in range(3))
         inst = concat(slot_inst)
-        valid = concat([count > b for b in range(n_slots)])
-        groups = [(k, dr.compress(valid & (inst == k))) for k in range(self.field.n)]
-        groups = [(k, idx) for k, idx in groups if dr.width(idx)]
-
-        pairs = dr.opaque(mi.UInt32, n_slots * n)
+        pairs = dr.opaque(mi.UInt32, dr.width(inst))
 
         def sdf(t: mi.Float, reps: int) -> mi.Float:
-            m = dr.width(t)
-            pair = dr.arange(mi.UInt32, m) % pairs
+            pair = dr.arange(mi.UInt32, dr.width(t)) % pairs
             ol, dl, half = [dr.gather(type(x), x, pair) for x in flat]
-            pl = ol + t * dl
-            f = box_sdf_local(pl, half)
-            # the points and box SDFs in one kernel (the instances' gathers below would evaluate
-            # each coordinate in a kernel of its own)
-            dr.eval(pl, f)
-            # per instance its pairs in every block, as one expression (a concatenation would
-            # launch a kernel per block)
-            lanes = []
-            for _, idx in groups:
-                q = dr.arange(mi.UInt32, dr.width(idx) * reps)
-                nv = dr.opaque(mi.UInt32, dr.width(idx))
-                lanes.append(dr.gather(mi.UInt32, idx, q % nv) + (q // nv) * pairs)
-            res = self.field.residual.evaluate_grouped(
-                weights, [k for k, _ in groups], [dr.gather(mi.Vector3f, pl, ln) for ln in lanes])
-            extra = dr.zeros(mi.Float, m)
-            for ln, r in zip(lanes, res):
-                dr.scatter(extra, r, ln)
-            out = f + extra
+            out = box_sdf_local(ol + t * dl, half) + self._pair_residuals(flat, inst, pair, t)
             dr.eval(out)
             return out
 
         return sdf
+
+    def _chord_grid(self, slot_views, slot_inst, count, picked: list[Picked]) -> "ChordGrid":
+        """Exact residuals on a grid over each (slot, ray) pair's enlarged-box chord
+        ``[entry, exit]``, spaced ``residual_grid / omega`` apart (at least
+        :data:`GRID_MIN_POINTS` per chord), for :class:`ChordGrid` to interpolate (detached).
+
+        ``R`` is smooth: a GELU MLP on a sinusoidal encoding whose highest frequency ``omega``
+        is ``2^(F-1) pi`` times the input scale (4 rad/m by default), while ``B`` carries every
+        kink of ``F = B + R`` along a ray. The searches for the extrema of ``F`` and the values
+        that only decide which samples leave the AD graph need ``R`` at the resolution of its
+        own features, not at every scan point of every cell: a long chord gets more points than
+        a short one, about 35 per band on the integrator benchmark, where the scans evaluated
+        ~90 and the values ~30 more.
+        """
+        rcfg = self.field.residual.cfg
+        omega = math.pi * 2.0 ** (rcfg.frequencies - 1) * rcfg.input_scale
+        spacing = self.cfg.residual_grid / omega
+        n_slots, n = len(slot_views), dr.width(count)
+        a = concat([pk.entry for pk in picked])
+        chord = dr.maximum(concat([pk.exit for pk in picked]) - a, 0.0)
+        valid = concat([count > b for b in range(n_slots)])
+        points = dr.select(valid, dr.maximum(mi.UInt32(dr.ceil(chord * (1.0 / spacing))) + 1, GRID_MIN_POINTS), 0)
+        first = dr.prefix_sum(points)  # exclusive
+        h = chord / mi.Float(dr.maximum(points, 2) - 1)
+        inv_h = dr.select(h > 0.0, dr.rcp(dr.select(h > 0.0, h, 1.0)), 0.0)
+        dr.eval(a, points, first, h, inv_h)
+        total = int(dr.sum(points)[0])
+        # grid lane -> its pair: mark each pair's first lane, count the marks up to a lane
+        busy = dr.compress(points > 0)
+        mark = dr.zeros(mi.UInt32, total)
+        dr.scatter(mark, 1, dr.gather(mi.UInt32, first, busy))
+        pair = dr.gather(mi.UInt32, busy, dr.cumsum(mark) - 1)
+        j = dr.arange(mi.UInt32, total) - dr.gather(mi.UInt32, first, pair)
+        t_grid = dr.fma(dr.gather(mi.Float, h, pair), mi.Float(j), dr.gather(mi.Float, a, pair))
+        flat = tuple(concat([sv[i] for sv in slot_views]) for i in range(3))
+        r = self._pair_residuals(flat, concat(slot_inst), pair, t_grid)
+        dr.eval(r)
+        return ChordGrid(flat, a, inv_h, points, first, r, n)
+
+    def _pair_residuals(self, flat, inst: mi.UInt32, pair: mi.UInt32, t: mi.Float) -> mi.Float:
+        """Residual ``R`` of each lane's (slot, ray) ``pair`` at ray parameter ``t`` (detached;
+        ``flat``: the pairs' box-local origins, directions and half sizes; ``inst``: the pairs'
+        instances, ``num_instances`` for an invalid slot, whose ``R`` is 0), every instance in
+        one batched evaluation."""
+        ol, dl = [dr.gather(type(x), x, pair) for x in flat[:2]]
+        pl = ol + t * dl
+        ik = dr.gather(mi.UInt32, inst, pair)
+        dr.eval(pl, ik)
+        groups = [(k, dr.compress(ik == k)) for k in range(self.field.n)]
+        groups = [(k, idx) for k, idx in groups if dr.width(idx)]
+        res = self.field.residual.evaluate_grouped(self.field.residual_weights(), [k for k, _ in groups],
+                                                   [dr.gather(mi.Vector3f, pl, idx) for _, idx in groups])
+        out = dr.zeros(mi.Float, dr.width(t))
+        for (_, idx), rk in zip(groups, res):
+            dr.scatter(out, rk, idx)
+        return out
 
     def _snapped_positions(self, sdf, starts: list[mi.Float], ends: list[mi.Float], k_sub: int, k: int,
                            dense_at_b: bool = False) -> list[list[mi.Float]]:
@@ -1437,7 +1602,7 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
                 formula(kk + kp + 2, kq, ex, sl.tail_end, kq)
         return out
 
-    def _adaptive_groups(self, dec, o, d, time) -> Iterator[SampleGroup]:
+    def _adaptive_groups(self, dec, o, d, time, bands: tuple | None = None) -> Iterator[SampleGroup]:
         """Sample positions for the adaptive strategy, one group per band count and layout
         (isolated rays, :meth:`_isolated`, get ``isolated_band_samples`` instead of ``K``).
 
@@ -1454,7 +1619,9 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         peak (else ``-1``); ``own`` per sample its band in an isolated group (``None`` otherwise).
         """
         kp, kq = self._tail_samples()
-        ray_idx, count, slots, slot_inst, slot_hit, isolated = self._adaptive_bands(dec, o, d, time)
+        if bands is None:
+            bands = self._adaptive_bands(dec, o, d, time)
+        ray_idx, count, slots, slot_inst, slot_hit, isolated, _ = bands
         if not slots:
             return
         # samples moved to the extrema of B + R (:meth:`_snapped_slots`) are data, not
@@ -1549,4 +1716,4 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
                     own = dr.zeros(mi.UInt32, na * m)
                     dr.scatter(own, band, r * m + rank)
             # yield outside ``suspend_grad``: the consumer differentiates the integral
-            yield SampleGroup(rays, ts, m, active, inst, deepest, (peak_a, peak_b, peak_lam), own)
+            yield SampleGroup(rays, ts, m, active, inst, deepest, (peak_a, peak_b, peak_lam), own, sub)

@@ -332,10 +332,13 @@ def test_band_search_returns_evaluated_arrays(residual):
     o, d, t = training_rays(rng, scene, 64)
     it = make(scene, residual=residual)
     with dr.suspend_grad():
-        ray_idx, count, slots, slot_inst, slot_hit, isolated = it._adaptive_bands(
+        ray_idx, count, slots, slot_inst, slot_hit, isolated, grid = it._adaptive_bands(
             it.field.decode(), *to_mi(o, d, t))
-    assert slots and (len(slots[0].moved) > 0) == residual
+    assert slots and (len(slots[0].moved) > 0) == residual and (grid is not None) == residual
     arrays = [count, isolated, *slot_inst, *slot_hit] + [x for sl in slots for x in sl.arrays()]
+    if grid is not None:
+        arrays += [*grid.views[0], *grid.views[1], *grid.views[2], grid.start, grid.inv_step, grid.points,
+                   grid.first, grid.r]
     assert all(x.state in (dr.VarState.Evaluated, dr.VarState.Literal) for x in arrays), \
         [str(x.state) for x in arrays]
 
@@ -352,8 +355,9 @@ def test_residual_tail_samples_do_not_pile_up():
     it = make(scene, sharpness=10.0, temperature=0.1, residual=True)
     total = repeated = 0
     with dr.suspend_grad():
-        for rays, ts, m, active, inst, deepest, peak, own in it._adaptive_groups(it.field.decode(), *to_mi(o, d, t)):
-            samples = np.array(ts).reshape(-1, m)
+        for grp in it._adaptive_groups(it.field.decode(), *to_mi(o, d, t)):
+            m = grp.m
+            samples = np.array(grp.t).reshape(-1, m)
             total += samples.size
             repeated += sum(m - len(np.unique(row)) for row in samples)
     assert repeated / total < 0.1, repeated / total
@@ -374,10 +378,10 @@ def test_adaptive_samples_are_merged_in_order(residual):
     layouts = {kk + 3} | ({it.cfg.isolated_band_samples + 3} if not residual else set())
     groups = 0
     with dr.suspend_grad():
-        for rays, ts, m, active, inst, deepest, peak, own in it._adaptive_groups(it.field.decode(), *to_mi(o, d, t)):
-            g = len(inst)
+        for grp in it._adaptive_groups(it.field.decode(), *to_mi(o, d, t)):
+            g, m = len(grp.inst), grp.m
             assert m % g == 0 and m // g in layouts
-            T = np.array(ts, dtype=np.float64).reshape(-1, m)
+            T = np.array(grp.t, dtype=np.float64).reshape(-1, m)
             steps = np.diff(T, axis=1)
             assert steps.min() >= -1e-6 * max(1.0, np.abs(T).max()), steps.min()
             # an unwritten slot would read 0 after a positive sample
@@ -402,7 +406,7 @@ def test_isolated_rays_are_those_whose_boxes_do_not_interact():
     for residual, expected in ((False, [True, False]), (True, [False, False])):
         it = make(scene, sharpness=10.0, temperature=0.1, residual=residual)
         with dr.suspend_grad():
-            ray_idx, count, slots, *_, isolated = it._adaptive_bands(it.field.decode(), *rays)
+            ray_idx, count, slots, *_, isolated, _ = it._adaptive_bands(it.field.decode(), *rays)
         assert list(np.array(count)) == [2, 3]
         assert len(slots) == 3  # slots up to the most boxes a ray meets, not one per instance
         assert list(np.broadcast_to(np.array(isolated), 2)) == expected
