@@ -391,18 +391,24 @@ class ChordGrid:
     rays: int  #: rays per slot
 
     def residual(self, pair: mi.UInt32, t: mi.Float) -> mi.Float:
-        """Interpolated ``R`` of ``pair`` at ray parameter ``t`` (the end values past the chord)."""
-        last = dr.maximum(dr.gather(mi.UInt32, self.points, pair), 2) - 1
+        """Interpolated ``R`` of ``pair`` at ray parameter ``t`` (the end values past the chord;
+        0 for a pair without grid points, an invalid slot)."""
+        points = dr.gather(mi.UInt32, self.points, pair)
+        some = points >= GRID_MIN_POINTS
+        last = dr.maximum(points, GRID_MIN_POINTS) - 1
         u = dr.clip((t - dr.gather(mi.Float, self.start, pair)) * dr.gather(mi.Float, self.inv_step, pair),
                     0.0, mi.Float(last))
         i = dr.minimum(mi.UInt32(u), last - 1)
         f = u - mi.Float(i)
         at = dr.gather(mi.UInt32, self.first, pair) + i
-        r1, r2 = dr.gather(mi.Float, self.r, at), dr.gather(mi.Float, self.r, at + 1)
-        # linear extrapolation at the chord's ends
-        r0 = dr.select(i > 0, dr.gather(mi.Float, self.r, dr.select(i > 0, at - 1, at)), 2.0 * r1 - r2)
-        r3 = dr.select(i + 1 < last, dr.gather(mi.Float, self.r, dr.select(i + 1 < last, at + 2, at)),
-                       2.0 * r2 - r1)
+        inner, end = i > 0, i + 1 < last
+        r0 = dr.gather(mi.Float, self.r, dr.select(inner, at - 1, at + 2), some)
+        r1 = dr.gather(mi.Float, self.r, at, some)
+        r2 = dr.gather(mi.Float, self.r, at + 1, some)
+        r3 = dr.gather(mi.Float, self.r, dr.select(end, at + 2, at - 1), some)
+        # quadratic extrapolation past the chord's ends (the cell's three grid points and the
+        # one beyond them: a chord has at least GRID_MIN_POINTS), so quadratics stay exact
+        r0, r3 = (dr.select(inner, r0, 3.0 * (r1 - r2) + r0), dr.select(end, r3, 3.0 * (r2 - r1) + r3))
         c1 = 0.5 * (r2 - r0)
         c2 = r0 - 2.5 * r1 + 2.0 * r2 - 0.5 * r3
         c3 = 0.5 * (r3 - r0) + 1.5 * (r1 - r2)

@@ -683,3 +683,75 @@ def test_render_traverse_and_no_recompilation():
         assert compiles[7:] == [0] * 7, compiles
     finally:
         dr.set_flag(dr.JitFlag.KernelHistory, False)
+
+
+def test_chord_grid_interpolates_the_residual():
+    """:class:`ChordGrid` reads the grid values at its nodes, reproduces a quadratic residual
+    exactly between them (Catmull-Rom), keeps the box SDF exact and adds the residual only
+    where ``B <= reach``; checked against the closed forms."""
+    from vsrd_plugins.sdf import box_sdf_local
+    from vsrd_plugins.silhouette import ChordGrid
+    rng = np.random.default_rng(5)
+    starts, lengths, counts = np.array([2.0, 7.5]), np.array([3.0, 1.2]), np.array([9, 4])
+    first = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    quad = [(0.05, -0.01, 0.003), (0.2, 0.04, -0.02)]  # r(t) = a + b (t - start) + c (t - start)^2
+    nodes = [s0 + np.linspace(0.0, ln, n) for s0, ln, n in zip(starts, lengths, counts)]
+    r = np.concatenate([a + b * (x - s0) + c * (x - s0) ** 2 for (a, b, c), x, s0 in zip(quad, nodes, starts)])
+    ol = mi.Vector3f(mi.Float([-3.0, -1.0]), mi.Float([0.2, 0.0]), mi.Float([0.1, -0.3]))
+    dl = mi.Vector3f(mi.Float([0.8, 0.6]), mi.Float([0.0, 0.1]), mi.Float([0.6, 0.79]))
+    half = mi.Vector3f(mi.Float([1.0, 0.9]), mi.Float([0.8, 0.7]), mi.Float([2.0, 2.2]))
+    grid = ChordGrid((ol, dl, half), mi.Float(starts), mi.Float((counts - 1) / lengths),
+                     mi.UInt32(counts), mi.UInt32(first), mi.Float(r), 2)
+    pair = np.repeat([0, 1], 50)
+    t = np.concatenate([rng.uniform(s0, s0 + ln, 50) for s0, ln in zip(starts, lengths)])
+    expected = np.array([quad[p][0] + quad[p][1] * (x - starts[p]) + quad[p][2] * (x - starts[p]) ** 2
+                         for p, x in zip(pair, t)])
+    np.testing.assert_allclose(np.array(grid.residual(mi.UInt32(pair), mi.Float(t))), expected, atol=2e-6)
+    node_pair = np.repeat([0, 1], counts)
+    np.testing.assert_allclose(np.array(grid.residual(mi.UInt32(node_pair), mi.Float(np.concatenate(nodes)))),
+                               r, atol=1e-6)
+    box = np.array(box_sdf_local(dr.gather(mi.Vector3f, ol, mi.UInt32(pair)) + mi.Float(t)
+                                 * dr.gather(mi.Vector3f, dl, mi.UInt32(pair)),
+                                 dr.gather(mi.Vector3f, half, mi.UInt32(pair))))
+    reach = 0.4
+    sdf = np.array(grid.sdf(mi.UInt32(pair), mi.Float(t), reach))
+    np.testing.assert_allclose(sdf, box + np.where(box <= reach, expected, 0.0), atol=2e-6)
+    assert (box > reach).any() and (box <= reach).any()  # both sides of the rule were exercised
+
+
+def test_residual_grid_matches_the_exact_residual_search():
+    """The chord grid (``residual_grid``, default) against evaluating the residual at every scan
+    point and sample (``residual_grid = 0``): labels within 0.003 (measured 6e-6) and the box
+    gradient at cosine >= 0.999 (measured 1.0000) on a 3-box scene, with fewer residual
+    evaluations outside the AD graph (measured 0.47x here; 0.34x on the integrator benchmark's
+    6 boxes / 16k rays, where a larger share of lanes is frozen)."""
+    from vsrd_plugins import sdf as sdf_module
+    rng = np.random.default_rng(21)
+    scene = random_scene(rng, 3)
+    rays = to_mi(*training_rays(rng, scene, 256))
+    kw = dict(sharpness=10.0, temperature=0.1, residual=True)
+    out, points = {}, {}
+    original = sdf_module.ResidualField.evaluate_grouped
+    for spacing in (0.0, 0.5):
+        counted = []
+
+        def count(self, weights, instances, pts):
+            if not dr.grad_enabled(weights) and not any(dr.grad_enabled(p) for p in pts):
+                counted.extend(dr.width(p.x) for p in pts)
+            return original(self, weights, instances, pts)
+
+        sdf_module.ResidualField.evaluate_grouped = count
+        try:
+            it = make(scene, residual_grid=spacing, **kw)
+            for k in BOX_KEYS:
+                dr.enable_grad(it.field.params[k])
+            labels = it.render_rays(*rays)[:3]
+            dr.backward(sum(dr.sum(lab * (i + 1.0)) for i, lab in enumerate(labels)))
+        finally:
+            sdf_module.ResidualField.evaluate_grouped = original
+        out[spacing] = (np.stack([np.array(dr.detach(x)) for x in labels]),
+                        np.concatenate([np.array(dr.grad(it.field.params[k])) for k in BOX_KEYS]))
+        points[spacing] = sum(counted)
+    assert np.abs(out[0.5][0] - out[0.0][0]).max() <= 3e-3, np.abs(out[0.5][0] - out[0.0][0]).max()
+    assert cosine(out[0.5][1], out[0.0][1]) >= 0.999, cosine(out[0.5][1], out[0.0][1])
+    assert points[0.5] < 0.6 * points[0.0], (points[0.5], points[0.0])
