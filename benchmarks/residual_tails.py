@@ -12,7 +12,9 @@ integral's discrete opacity telescopes over each monotone descent, so every loca
 minimum of ``B + R`` is a place a sample must sit. The settings: uniform tail samples (12-32
 per band, samples left where the band formula puts them, ``residual_tail_scan = 0``), then the
 default 12 with band and tail samples moved to the extrema a detached scan finds (1-3 scan
-points per sample), and the default without the sparse AD graph.
+points per sample), the default with a coarser residual grid and without it (every scan point
+and sample evaluates the residual; ``residual_grid``), and the default without the sparse AD
+graph.
 
 Usage::
 
@@ -47,6 +49,8 @@ SETTINGS = (
     ("moved, scan 1", {"residual_tail_scan": 1}),
     ("moved, scan 2", {"residual_tail_scan": 2}),
     ("default (moved, scan 3)", {}),
+    ("default, residual grid 0.75 rad", {"residual_grid": 0.75}),
+    ("default, exact residual (no grid)", {"residual_grid": 0}),
     ("default, full AD graph", {"residual_sparse_gradients": False}),
 )
 
