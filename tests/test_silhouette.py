@@ -755,3 +755,32 @@ def test_residual_grid_matches_the_exact_residual_search():
     assert np.abs(out[0.5][0] - out[0.0][0]).max() <= 3e-3, np.abs(out[0.5][0] - out[0.0][0]).max()
     assert cosine(out[0.5][1], out[0.0][1]) >= 0.999, cosine(out[0.5][1], out[0.0][1])
     assert points[0.5] < 0.6 * points[0.0], (points[0.5], points[0.0])
+
+
+def test_moved_samples_share_a_cell_with_two_extrema():
+    """A cell of the snapped sub-bands holding a maximum and a minimum of ``B + R`` keeps one
+    for its own sample and lends the other to the neighbour on that side, whose own cell has no
+    extremum (:meth:`_snapped_positions`): both extrema get a sample, within a tenth of the
+    cell, and the samples stay sorted."""
+    it = make({"centres": np.array([[0.0, 0.0, 10.0]]), "sizes": np.array([[1.8, 1.5, 4.2]]),
+               "yaws": np.zeros(1)}, residual=True)
+    k, a, b = 6, 0.0, 6.0
+    nominal = [float(np.array(it._sub_sample(mi.Float(a), mi.Float(b), i, k))[0]) for i in range(k + 1)]
+    lo, hi = nominal[2], nominal[3]  # the third cell holds a full period of a sine
+    w, amp, slope = hi - lo, 0.1, 0.3
+
+    def f(t):
+        bump = np.where((t > lo) & (t < hi), amp * np.sin(2.0 * np.pi * (t - lo) / w), 0.0)
+        return slope * t + bump
+
+    def sdf(t, reps):
+        return mi.Float(f(np.array(t, dtype=np.float64)).astype(np.float32))
+
+    with dr.suspend_grad():
+        moved = it._snapped_positions(sdf, [mi.Float([a, a])], [mi.Float([b, b])], k, k)[0]
+    pos = np.array([np.array(p)[0] for p in moved])
+    assert np.all(np.diff(pos) >= 0.0), pos
+    phase = np.arccos(-slope * w / (2.0 * np.pi * amp))
+    extrema = lo + w * np.array([phase, 2.0 * np.pi - phase]) / (2.0 * np.pi)
+    for x in extrema:
+        assert np.min(np.abs(pos - x)) <= 0.1 * w, (x, pos)
