@@ -202,7 +202,7 @@ GAP_WINDOW = 4
 #: other in the graph, which froze a sample the graph saw as the minimum (box gradient off by
 #: 0.25 % relative on a 3-box test scene instead of < 0.05 %).
 MONOTONE_TOLERANCE = 1e-5
-#: Fewest grid points per chord of :meth:`VSRDSilhouetteIntegrator._grid_sdf`.
+#: Fewest grid points per chord of :meth:`VSRDSilhouetteIntegrator._chord_grid`.
 GRID_MIN_POINTS = 4
 #: Monotone margin (m) with which interpolated values sort samples into frozen or not
 #: (:meth:`VSRDSilhouetteIntegrator._grid_values`): above the interpolation error (p9999 9e-4 m).
@@ -496,7 +496,7 @@ class SamplingConfig:
     residual_tail_scan: int = 3
     #: With the residual search: exact residual values per band spaced over the enlarged box's
     #: chord, interpolated for the scans (0: every scan point evaluates the residual); see
-    #: :meth:`VSRDSilhouetteIntegrator._grid_sdf`.
+    #: :meth:`VSRDSilhouetteIntegrator._chord_grid`.
     residual_grid: float = 0.5
     #: With the residual field: samples whose gradient vanishes (inside a monotone run of the
     #: scene SDF, one instance near) keep their values but leave the AD graph; see
@@ -656,7 +656,7 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
             for rays, t, m, _, slot_inst, deepest, _, own, rows in groups:
                 r = dr.arange(mi.UInt32, dr.width(t)) // m
                 ray_of = dr.gather(mi.UInt32, rays, r)
-                if grid is not None:  # lanes of isolated groups need no pairs: the field is on
+                if grid is not None:  # each lane's (slot, ray) pair of the chord grid
                     row_of = dr.gather(mi.UInt32, rows, r)
                     pairs += [row_of + dr.opaque(mi.UInt32, b * grid.rays) for b in range(len(slot_inst))]
                 if own is not None:  # isolated rays: each sample's own band's instance only
@@ -818,10 +818,8 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
             # behind a surface that took the transmittance below exp(-reach): every term a
             # sample's value enters is weighted by the transmittance before the interval that
             # ends at it (the culling bound)
-            more = j < m - 1
-            f_after = dr.gather(mi.Float, f, dr.select(more, lane + 1, lane))
-            log1ma = dr.select(more, dr.minimum(softplus(-s * f) - softplus(-s * f_after), 0.0), 0.0)
-            log_t = dr.block_prefix_sum(log1ma, m, exclusive=True)
+            f_after = dr.gather(mi.Float, f, block_successor(w, m))
+            log_t, _ = self._log_transmittance(s, f, f_after, j == m - 1, m)
             shadowed = (j > 0) & (dr.gather(mi.Float, log_t, dr.select(j > 0, lane - 1, lane)) < -self.cfg.reach)
             free |= shadowed
             for b in range(n_slots):
@@ -923,12 +921,18 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         return [dr.block_sum(x, m) for x in terms]
 
     @staticmethod
+    def _log_transmittance(s, f, f_next, last: mi.Bool, m: int) -> tuple[mi.Float, mi.Float]:
+        """``log T_i`` (before the interval from each sample to the next) and ``log(1 -
+        alpha_i)`` of the NeuS opacity in log space (module docstring; ``m`` samples per ray,
+        ``last`` marks each ray's last sample, which starts no interval)."""
+        log1ma = dr.select(last, 0.0, dr.minimum(softplus(-s * f) - softplus(-s * f_next), 0.0))
+        return dr.block_prefix_sum(log1ma, m, exclusive=True), log1ma
+
+    @staticmethod
     def _interval_weights(s, f, f_next, last: mi.Bool, m: int) -> tuple[mi.Float, mi.Float]:
         """NeuS weights ``w_i = T_i alpha_i`` of the intervals between each sample and the next
-        (``m`` per ray; ``last`` marks each ray's last sample, which starts no interval) and
-        ``log(1 - alpha_i)``, in log space (module docstring)."""
-        log1ma = dr.select(last, 0.0, dr.minimum(softplus(-s * f) - softplus(-s * f_next), 0.0))
-        log_t = dr.block_prefix_sum(log1ma, m, exclusive=True)
+        and ``log(1 - alpha_i)`` (:meth:`_log_transmittance`)."""
+        log_t, log1ma = VSRDSilhouetteIntegrator._log_transmittance(s, f, f_next, last, m)
         return dr.exp(log_t) - dr.exp(log_t + log1ma), log1ma
 
     @staticmethod
@@ -1337,12 +1341,18 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
                 self._snapped_positions(sdf, lo, mid, k1, k1 - 1, True) if k1 > 1 else empty,
                 self._snapped_positions(sdf, mid, hi, k2, k2) if k2 else empty]
 
+    @staticmethod
+    def _pair_views(slot_views) -> tuple:
+        """The box-local ray origins, directions and half sizes of every (slot, ray) pair,
+        slot-major."""
+        return tuple(concat([sv[i] for sv in slot_views]) for i in range(3))
+
     def _pair_sdf(self, slot_views, slot_inst):
         """``sdf(t, reps)``: the instance SDF ``F = B + R`` of every (slot, ray) pair at ``reps``
         ray parameters per pair (``t`` holds ``reps`` pair-major blocks of the slot-major pairs),
         detached and exact (``residual_grid = 0``; :class:`ChordGrid` interpolates ``R``
         instead); invalid slots get their box's ``B`` only."""
-        flat = tuple(concat([sv[i] for sv in slot_views]) for i in range(3))
+        flat = self._pair_views(slot_views)
         inst = concat(slot_inst)
         pairs = dr.opaque(mi.UInt32, dr.width(inst))
 
@@ -1388,7 +1398,7 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         pair = dr.gather(mi.UInt32, busy, dr.cumsum(mark) - 1)
         j = dr.arange(mi.UInt32, total) - dr.gather(mi.UInt32, first, pair)
         t_grid = dr.fma(dr.gather(mi.Float, h, pair), mi.Float(j), dr.gather(mi.Float, a, pair))
-        flat = tuple(concat([sv[i] for sv in slot_views]) for i in range(3))
+        flat = self._pair_views(slot_views)
         r = self._pair_residuals(flat, concat(slot_inst), pair, t_grid)
         dr.eval(r)
         return ChordGrid(flat, a, inv_h, points, first, r, n)
