@@ -563,6 +563,32 @@ class ResidualField:
         """Residual ``R_k(p)`` (>= 0) at box-local points of instance ``k``."""
         return self.evaluate_grouped(weights, [k], [p_local])[0]
 
+    def lattice(self, weights: mi.TensorXf, extents: np.ndarray, spacing: float) -> ResidualLattice:
+        """Tabulate every instance's residual on a :class:`ResidualLattice` covering the box-local
+        boxes of half sizes ``extents`` (``(N, 3)`` NumPy, margin included) at ``spacing``
+        (detached; one fused MLP kernel per instance, sizes opaque: nothing recompiles when the
+        boxes change)."""
+        counts = ResidualLattice.node_counts(extents, spacing)
+        sizes = counts.prod(axis=1)
+        base = np.concatenate([[0], np.cumsum(sizes)[:-1]])
+        ext = np.asarray(extents, dtype=np.float32)
+        low = [np.zeros(self.n, dtype=np.float32), -ext[:, 1], -ext[:, 2]]
+        h = dr.opaque(mi.Float, spacing)
+        with dr.suspend_grad():
+            points = []
+            for k in range(self.n):
+                ny, nz = dr.opaque(mi.UInt32, int(counts[k, 1])), dr.opaque(mi.UInt32, int(counts[k, 2]))
+                idx = dr.arange(mi.UInt32, int(sizes[k]))
+                yz = idx % (ny * nz)
+                node = [idx // (ny * nz), yz // nz, yz % nz]
+                points.append(mi.Vector3f(*[dr.fma(mi.Float(node[a]) - 1.0, h, dr.opaque(mi.Float, float(low[a][k])))
+                                            for a in range(3)]))
+            values = concat(self.evaluate_grouped(dr.detach(weights), list(range(self.n)), points))
+            dr.eval(values)
+        return ResidualLattice(values, mi.UInt32(base.astype(np.uint32)),
+                               tuple(mi.UInt32(counts[:, a].astype(np.uint32)) for a in range(3)),
+                               tuple(mi.Float(v) for v in low), dr.opaque(mi.Float, 1.0 / spacing), self.n)
+
     def evaluate_grouped(self, weights: mi.TensorXf, instances: Sequence[int],
                          points: Sequence[mi.Vector3f]) -> list[mi.Float]:
         """Residuals ``R_k`` of several instances (group ``g``: box-local points ``points[g]`` of
@@ -627,6 +653,81 @@ class ResidualField:
             if i < len(layers) - 1:
                 x = gelu(_layer_norm_features(x))
         return dr.gather(mi.Float, self._output(x.array), dr.arange(mi.UInt32, n))
+
+
+
+def catmull_rom_weights(f: mi.Float) -> list[mi.Float]:
+    """Weights of the four grid values ``v[i-1..i+2]`` of the Catmull-Rom spline at fraction
+    ``f`` of cell ``[i, i+1]`` (C1; exact for quadratics)."""
+    f2 = f * f
+    f3 = f2 * f
+    return [0.5 * (2.0 * f2 - f3 - f), dr.fma(1.5, f3, dr.fma(-2.5, f2, 1.0)),
+            0.5 * (dr.fma(-3.0, f3, 4.0 * f2) + f), 0.5 * (f3 - f2)]
+
+
+#: A lookup of :class:`ResidualLattice` (64 gathers) costs about this many fused residual MLP
+#: evaluations: 1.24M lookups 0.017-0.021 s against the MLP's 0.098-0.12 s at the same points
+#: (2 cores, 6 instances).
+LATTICE_LOOKUP_COST = 0.2
+
+
+@dataclass(frozen=True)
+class ResidualLattice:
+    """Every instance's residual ``R_k`` tabulated on a regular grid over its box-local box
+    enlarged by a margin, read back by tricubic Catmull-Rom interpolation
+    (:meth:`ResidualField.lattice`; detached).
+
+    ``R`` is a function of the box-local point alone, so one table per instance serves every
+    ray of every frame: where many rays cross a box (large ray batches, full-image renders)
+    tabulating it costs fewer MLP evaluations than evaluating it along each ray. The x axis
+    holds ``|x|`` (the field's mirror symmetry) from 0; in the cell at ``|x| = 0`` the node at
+    ``-h`` is replaced by the quadratic extrapolation of the three beyond it, so the kink of
+    ``R(|x|)`` at the mirror plane stays exact. Per axis the nodes sit one spacing below the
+    covered range and two above it (the spline's stencil).
+    """
+
+    values: mi.Float  #: the residual at every node, instance-major, then x, y, z (z fastest)
+    base: mi.UInt32  #: per instance the index of its first node
+    counts: tuple  #: per axis (x, y, z) a UInt32 of per-instance node counts
+    low: tuple  #: per axis a Float of per-instance coordinates of node 1 (x: 0)
+    inv_step: mi.Float  #: 1 / spacing (opaque)
+    num_instances: int
+
+    @staticmethod
+    def node_counts(extents: np.ndarray, spacing: float) -> np.ndarray:
+        """``(N, 3)`` node counts for boxes of half sizes ``extents`` (``(N, 3)``, margin
+        included) at ``spacing``."""
+        span = np.asarray(extents, dtype=np.float64) * np.array([1.0, 2.0, 2.0])
+        return np.ceil(span / spacing).astype(np.int64) + 3
+
+    def residual(self, inst: mi.UInt32, p_local: mi.Vector3f, active: mi.Bool | bool = True) -> mi.Float:
+        """Interpolated ``R_inst(p_local)`` (0 on inactive lanes; points beyond the covered box
+        read its border)."""
+        active = mi.Bool(active) & (inst < self.num_instances)
+        k = dr.select(active, inst, 0)
+        axes = []
+        for axis, coord in enumerate((dr.abs(p_local.x), p_local.y, p_local.z)):
+            n = dr.gather(mi.UInt32, self.counts[axis], k)
+            u = dr.clip(dr.fma(coord - dr.gather(mi.Float, self.low[axis], k), self.inv_step, 1.0),
+                        1.0, mi.Float(n - 2))
+            i = dr.minimum(mi.UInt32(u), n - 3)
+            axes.append((i - 1, n, catmull_rom_weights(u - mi.Float(i))))
+        (ix, _, wx), (iy, ny, wy), (iz, nz, wz) = axes
+        # the cell at the mirror plane: quadratic extrapolation in place of the node at -h
+        mirror = ix == 0
+        w0 = wx[0]
+        wx = [dr.select(mirror, 0.0, w0), dr.select(mirror, dr.fma(3.0, w0, wx[1]), wx[1]),
+              dr.select(mirror, dr.fma(-3.0, w0, wx[2]), wx[2]), dr.select(mirror, wx[3] + w0, wx[3])]
+        base = dr.gather(mi.UInt32, self.base, k)
+        out = mi.Float(0.0)
+        for a in range(4):
+            for b in range(4):
+                row = base + ((ix + a) * ny + iy + b) * nz + iz
+                line = mi.Float(0.0)
+                for c in range(4):
+                    line = dr.fma(wz[c], dr.gather(mi.Float, self.values, row + c, active), line)
+                out = dr.fma(wx[a] * wy[b], line, out)
+        return out
 
 
 # ----------------------------------------------------------------------------------------------

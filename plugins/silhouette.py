@@ -171,12 +171,13 @@ from __future__ import annotations
 import math
 
 from dataclasses import dataclass, fields, replace
-from typing import Iterator, NamedTuple
+from typing import Callable, Iterator, NamedTuple
 
 import drjit as dr
 import mitsuba as mi
+import numpy as np
 
-from .sdf import (RIDGE_TOLERANCE, InstanceField, box_normal_local, box_sdf_local, concat, envelope_blend,
+from .sdf import (LATTICE_LOOKUP_COST, RIDGE_TOLERANCE, InstanceField, ResidualLattice, box_normal_local, box_sdf_local, concat, envelope_blend,
                   envelope_weight, ray_box_interval, scene_sdf, softmin_labels, softplus)
 
 GOLDEN = 0.6180339887498949
@@ -427,14 +428,51 @@ class ChordGrid:
             r = dr.select(b <= reach, r, 0.0)
         return b + r
 
-    def scan(self, t: mi.Float, reps: int) -> mi.Float:
-        """``F`` at ``reps`` pair-major blocks of ray parameters (the contract of
-        :meth:`VSRDSilhouetteIntegrator._pair_sdf`'s ``sdf``), evaluated."""
-        width = dr.width(self.start)
-        pair = dr.arange(mi.UInt32, dr.width(t)) % dr.opaque(mi.UInt32, width)
-        out = self.sdf(pair, t)
+
+
+@dataclass(frozen=True)
+class PairScan:
+    """The instance SDF ``F = B + R`` of the valid (slot, ray) pairs for the detached scans of
+    :meth:`VSRDSilhouetteIntegrator._residual_minima` and
+    :meth:`VSRDSilhouetteIntegrator._snapped_positions` (pairs slot-major, as
+    :class:`ChordGrid`'s). A slot beyond a ray's count of met boxes has nothing to scan: the
+    scans run over the valid pairs alone (57 % of the pairs on the 6-box benchmark, 51-53 % at 3
+    and 12 boxes), and their results read back as 0 there."""
+
+    valid: mi.Bool  #: per pair: the slot holds one of the ray's boxes
+    pairs: mi.UInt32  #: the valid pairs' indices
+    rank: mi.UInt32  #: per pair its index among the valid ones
+    at: Callable[[mi.UInt32, mi.Float], mi.Float]  #: ``F`` of given pairs at given ray parameters
+
+    @staticmethod
+    def of(valid: mi.Bool, at: Callable[[mi.UInt32, mi.Float], mi.Float]) -> "PairScan":
+        pairs = dr.compress(valid)
+        rank = dr.prefix_sum(mi.UInt32(valid))
+        dr.eval(rank)
+        return PairScan(valid, pairs, rank, at)
+
+    def block_pairs(self, reps: int) -> tuple[mi.UInt32, mi.UInt32]:
+        """Block index and pair of each lane of ``reps`` pair-major blocks of the valid pairs."""
+        nv = dr.opaque(mi.UInt32, dr.width(self.pairs))
+        q = dr.arange(mi.UInt32, reps * dr.width(self.pairs))
+        block = q // nv
+        return block, dr.gather(mi.UInt32, self.pairs, q - block * nv)
+
+    def __call__(self, t: mi.Float, reps: int) -> mi.Float:
+        """``F`` at ``t``: ``reps`` pair-major blocks of ray parameters of the valid pairs
+        (evaluated; same layout)."""
+        out = self.at(self.block_pairs(reps)[1], t)
         dr.eval(out)
         return out
+
+    def spread(self, values: mi.Float, block: int) -> mi.Float:
+        """Block ``block`` of :meth:`__call__`'s result per pair (0 at invalid pairs)."""
+        at = self.rank + dr.opaque(mi.UInt32, block * dr.width(self.pairs))
+        return dr.gather(mi.Float, values, at, self.valid)
+
+    def full(self, t: mi.Float) -> mi.Float:
+        """``F`` at one ray parameter per pair (every pair; 0 at invalid ones)."""
+        return self.spread(self(dr.gather(mi.Float, t, self.pairs), 1), 0)
 
 
 class SampleGroup(NamedTuple):
@@ -498,6 +536,11 @@ class SamplingConfig:
     #: chord, interpolated for the scans (0: every scan point evaluates the residual); see
     #: :meth:`VSRDSilhouetteIntegrator._chord_grid`.
     residual_grid: float = 0.5
+    #: With the chord grid: tabulate the residual per instance on a box-local lattice this many
+    #: radians of the encoding's highest frequency apart when that is cheaper than evaluating it
+    #: at every chord-grid point (dense ray batches), and fill the grids from it (0: never); see
+    #: :meth:`VSRDSilhouetteIntegrator._residual_lattice`.
+    residual_lattice: float = 0.35
     #: With the residual field: samples whose gradient vanishes (inside a monotone run of the
     #: scene SDF, one instance near) keep their values but leave the AD graph; see
     #: :meth:`VSRDSilhouetteIntegrator._frozen_lanes`.
@@ -528,6 +571,7 @@ class SamplingConfig:
             residual_tail=int(props.get("residual_tail", d.residual_tail)),
             residual_tail_scan=int(props.get("residual_tail_scan", d.residual_tail_scan)),
             residual_grid=float(props.get("residual_grid", d.residual_grid)),
+            residual_lattice=float(props.get("residual_lattice", d.residual_lattice)),
             residual_sparse_gradients=bool(props.get("residual_sparse_gradients", d.residual_sparse_gradients)),
             isolated_rays=bool(props.get("isolated_rays", d.isolated_rays)),
             isolated_band_samples=int(props.get("isolated_band_samples", d.isolated_band_samples)),
@@ -541,7 +585,7 @@ class SamplingConfig:
             raise ValueError(f"vsrd_silhouette: sampling must be 'adaptive' or 'dense', got {cfg.sampling!r}")
         if (cfg.band_samples < 2 or cfg.max_bands < 0 or cfg.coarse_samples < 2 or cfg.fine_samples < 1
                 or cfg.residual_scan == 1 or cfg.residual_scan < 0 or cfg.residual_golden < 0
-                or cfg.residual_tail < 0 or cfg.residual_tail_scan < 0 or cfg.residual_grid < 0
+                or cfg.residual_tail < 0 or cfg.residual_tail_scan < 0 or cfg.residual_grid < 0 or cfg.residual_lattice < 0
                 or cfg.isolated_band_samples < 1):
             raise ValueError("vsrd_silhouette: sample counts too small")
         if not (0.0 <= cfg.near < cfg.far):
@@ -1133,10 +1177,11 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
             fmin = sdf = grid = None
             if self._residual_search():  # F = B + R of every (slot, ray) pair, built once
                 if cfg.residual_grid > 0:
-                    grid = self._chord_grid(slot_views, slot_inst, count, picked)
-                    sdf = grid.scan
+                    grid = self._chord_grid(dec, slot_views, slot_inst, count, picked)
+                    at = grid.sdf
                 else:
-                    sdf = self._pair_sdf(slot_views, slot_inst)
+                    at = self._pair_sdf(slot_views, slot_inst)
+                sdf = PairScan.of(concat([count > b for b in range(len(slot_inst))]), at)
                 fmin = self._residual_minima(sdf, slot_views, count, picked)
             use_tail = self._tail_samples()[1] > 0
             anchors, slot_hit, slot_ts, tails, deepests = [], [], [], [], []
@@ -1347,25 +1392,27 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         slot-major."""
         return tuple(concat([sv[i] for sv in slot_views]) for i in range(3))
 
-    def _pair_sdf(self, slot_views, slot_inst):
-        """``sdf(t, reps)``: the instance SDF ``F = B + R`` of every (slot, ray) pair at ``reps``
-        ray parameters per pair (``t`` holds ``reps`` pair-major blocks of the slot-major pairs),
-        detached and exact (``residual_grid = 0``; :class:`ChordGrid` interpolates ``R``
-        instead); invalid slots get their box's ``B`` only."""
+    def _pair_sdf(self, slot_views, slot_inst) -> Callable[[mi.UInt32, mi.Float], mi.Float]:
+        """``at(pair, t)``: the instance SDF ``F = B + R`` of (slot, ray) pairs ``pair`` at ray
+        parameters ``t`` (for :class:`PairScan`), detached and exact (``residual_grid = 0``;
+        :class:`ChordGrid` interpolates ``R`` instead); invalid slots get their box's ``B``
+        only."""
         flat = self._pair_views(slot_views)
         inst = concat(slot_inst)
-        pairs = dr.opaque(mi.UInt32, dr.width(inst))
 
-        def sdf(t: mi.Float, reps: int) -> mi.Float:
-            pair = dr.arange(mi.UInt32, dr.width(t)) % pairs
+        def at(pair: mi.UInt32, t: mi.Float) -> mi.Float:
             ol, dl, half = [dr.gather(type(x), x, pair) for x in flat]
-            out = box_sdf_local(ol + t * dl, half) + self._pair_residuals(flat, inst, pair, t)
-            dr.eval(out)
-            return out
+            return box_sdf_local(ol + t * dl, half) + self._pair_residuals(flat, inst, pair, t)
 
-        return sdf
+        return at
 
-    def _chord_grid(self, slot_views, slot_inst, count, picked: list[Picked]) -> "ChordGrid":
+    def _residual_omega(self) -> float:
+        """The residual encoding's highest frequency in rad/m: ``2^(F-1) pi`` times its input
+        scale (4 rad/m by default)."""
+        rcfg = self.field.residual.cfg
+        return math.pi * 2.0 ** (rcfg.frequencies - 1) * rcfg.input_scale
+
+    def _chord_grid(self, dec, slot_views, slot_inst, count, picked: list[Picked]) -> "ChordGrid":
         """Exact residuals on a grid over each (slot, ray) pair's enlarged-box chord
         ``[entry, exit]``, spaced ``residual_grid / omega`` apart (at least
         :data:`GRID_MIN_POINTS` per chord), for :class:`ChordGrid` to interpolate (detached).
@@ -1378,9 +1425,7 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         a short one, about 35 per band on the integrator benchmark, where the scans evaluated
         ~90 and the values ~30 more.
         """
-        rcfg = self.field.residual.cfg
-        omega = math.pi * 2.0 ** (rcfg.frequencies - 1) * rcfg.input_scale
-        spacing = self.cfg.residual_grid / omega
+        spacing = self.cfg.residual_grid / self._residual_omega()
         n_slots, n = len(slot_views), dr.width(count)
         a = concat([pk.entry for pk in picked])
         chord = dr.maximum(concat([pk.exit for pk in picked]) - a, 0.0)
@@ -1399,9 +1444,32 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         j = dr.arange(mi.UInt32, total) - dr.gather(mi.UInt32, first, pair)
         t_grid = dr.fma(dr.gather(mi.Float, h, pair), mi.Float(j), dr.gather(mi.Float, a, pair))
         flat = self._pair_views(slot_views)
-        r = self._pair_residuals(flat, concat(slot_inst), pair, t_grid)
+        lattice = self._residual_lattice(dec, total)
+        if lattice is None:
+            r = self._pair_residuals(flat, concat(slot_inst), pair, t_grid)
+        else:
+            ol, dl = [dr.gather(type(x), x, pair) for x in flat[:2]]
+            r = lattice.residual(dr.gather(mi.UInt32, concat(slot_inst), pair), ol + t_grid * dl)
         dr.eval(r)
         return ChordGrid(flat, a, inv_h, points, first, r, n)
+
+    def _residual_lattice(self, dec, grid_points: int) -> ResidualLattice | None:
+        """The residual tabulated per instance (:class:`~vsrd_plugins.sdf.ResidualLattice`,
+        spacing ``residual_lattice / omega``, over each box enlarged by the residual's reach)
+        when that costs fewer MLP evaluations than ``grid_points`` chord-grid points do
+        (counting a lookup as :data:`~vsrd_plugins.sdf.LATTICE_LOOKUP_COST` of one), else
+        ``None``. A dense ray batch crosses each box many times and pays for the table once
+        (6 boxes, 16k rays: 0.46M nodes instead of 1.24M grid points); a sparse one is cheaper
+        along its chords."""
+        if self.cfg.residual_lattice <= 0:
+            return None
+        spacing = self.cfg.residual_lattice / self._residual_omega()
+        margin = float(dr.detach(self._residual_reach())[0])
+        extents = np.stack([dr.detach(h).numpy() for h in dec.half], axis=1) + margin
+        nodes = int(ResidualLattice.node_counts(extents, spacing).prod(axis=1).sum())
+        if nodes >= grid_points * (1.0 - LATTICE_LOOKUP_COST):
+            return None
+        return self.field.residual.lattice(self.field.residual_weights(), extents, spacing)
 
     def _pair_residuals(self, flat, inst: mi.UInt32, pair: mi.UInt32, t: mi.Float) -> mi.Float:
         """Residual ``R`` of each lane's (slot, ray) ``pair`` at ray parameter ``t`` (detached;
@@ -1425,7 +1493,7 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
                            dense_at_b: bool = False) -> list[list[mi.Float]]:
         """Per slot the positions of the first ``k`` samples of the sub-band ``(starts[b],
         ends[b]]`` of ``k_sub`` samples (:meth:`_sub_sample`), moved to the local extrema of
-        ``F = B + R`` (detached; ``sdf`` from :meth:`_pair_sdf`).
+        ``F = B + R`` (detached; ``sdf``: the :class:`PairScan` of the pairs).
 
         Along a ray that runs close to a face, ``B + R`` has several shallow local minima and
         maxima, and the discrete opacity telescopes over each monotone run: it is right where
@@ -1446,7 +1514,6 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         """
         per = self.cfg.residual_tail_scan
         n_slots, n = len(starts), dr.width(starts[0])
-        width = n_slots * n
         a, b = concat(starts), concat(ends)
         nominal = [self._sub_sample(a, b, i, k_sub, dense_at_b) for i in range(k + 1)]
 
@@ -1461,19 +1528,16 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
             ts += [scan_point(nominal[i - 1], nominal[i], j) for j in range(1, per + 1)]
         if k < k_sub:
             ts.append(self._sub_sample(a, b, k + 1, k_sub, dense_at_b))
-        # the same parameters as one flat array, pair-major blocks, from one expression
-        wo = dr.opaque(mi.UInt32, width)
-        q = dr.arange(mi.UInt32, len(ts) * width)
-        m = q // wo
-        pair = q - m * wo
+        # the same parameters as one flat array, pair-major blocks of the valid pairs, from one
+        # expression
+        m, pair = sdf.block_pairs(len(ts))
         ap, bp = dr.gather(mi.Float, a, pair), dr.gather(mi.Float, b, pair)
         cell = dr.select(m == 0, 0, dr.minimum((m + per - 1) // per, k + 1))
         j = dr.select((m == 0) | (cell > k), per, m - (cell - 1) * per)
         flat = scan_point(self._sub_sample(ap, bp, dr.select(cell > 0, cell - 1, 0), k_sub, dense_at_b),
                           self._sub_sample(ap, bp, cell, k_sub, dense_at_b), j)
         values = sdf(flat, len(ts))
-        lane = dr.arange(mi.UInt32, width)
-        v = [dr.gather(mi.Float, values, lane + wo * i) for i in range(len(ts))]
+        v = [sdf.spread(values, i) for i in range(len(ts))]
         out, scores = [], []
         for i in range(1, k + 1):
             last = i * per  # scan index of the nominal position
@@ -1526,7 +1590,7 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
 
     def _residual_minima(self, sdf, slot_views, count, picked: list[Picked]) -> list[mi.Float]:
         """Per slot, where the instance SDF ``F = B + R`` is least along the ray (detached;
-        ``sdf`` from :meth:`_pair_sdf`).
+        ``sdf``: the :class:`PairScan` of the pairs).
 
         ``R >= 0`` moves ``F``'s minimum off the box's: along a ray grazing a face ``B`` is
         nearly flat and ``R`` decides, and inside a box ``F`` can keep falling past ``B``'s
@@ -1551,13 +1615,12 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         step = (b - a) / (k - 1)
         # candidates: k uniform points of [a, b], then t*
         cand = [dr.fma(step, float(i), a) for i in range(k)] + [ts]
-        values = sdf(concat(cand), k + 1)
+        values = sdf(concat([dr.gather(mi.Float, c, sdf.pairs) for c in cand]), k + 1)
         width = n_slots * n
         best_v = dr.full(mi.Float, 1e30, width)
         best_i = dr.zeros(mi.UInt32, width)
-        lane = dr.arange(mi.UInt32, width)
         for i in range(k + 1):
-            v = dr.gather(mi.Float, values, lane + dr.opaque(mi.UInt32, i * width))
+            v = sdf.spread(values, i)
             better = v < best_v
             best_v, best_i = dr.select(better, v, best_v), dr.select(better, i, best_i)
         t_min = dr.select(best_i == k, ts, dr.fma(step, mi.Float(best_i), a))
@@ -1565,13 +1628,12 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
             lo = dr.maximum(t_min - step, a)
             hi = dr.minimum(t_min + step, b)
             x1, x2 = golden_probes(lo, hi)
-            f12 = sdf(concat([x1, x2]), 2)
-            state = (lo, hi, x1, x2, dr.gather(mi.Float, f12, lane),
-                     dr.gather(mi.Float, f12, lane + dr.opaque(mi.UInt32, width)))
+            f12 = sdf(concat([dr.gather(mi.Float, x, sdf.pairs) for x in (x1, x2)]), 2)
+            state = (lo, hi, x1, x2, sdf.spread(f12, 0), sdf.spread(f12, 1))
             # unrolled, not golden_section's symbolic loop: the residual MLP runs as tensor-mode
             # kernels, which cannot be traced inside one
             for _ in range(cfg.residual_golden):
-                state = golden_step(state, lambda x: sdf(x, 1))
+                state = golden_step(state, sdf.full)
                 dr.eval(state)
             f_min = dr.minimum(state[4], state[5])
             t_min = dr.select(f_min < best_v, golden_argmin(state), t_min)
