@@ -208,6 +208,9 @@ GRID_MIN_POINTS = 4
 #: Monotone margin (m) with which interpolated values sort samples into frozen or not
 #: (:meth:`VSRDSilhouetteIntegrator._grid_values`): above the interpolation error (p9999 9e-4 m).
 GRID_TOLERANCE = 1e-3
+#: Above the float32 difference (m) between a lane's box SDF from its box-local ray
+#: (:class:`ChordGrid`) and from its world-frame point (:meth:`~vsrd_plugins.sdf.InstanceField.lane_sdfs`).
+REACH_ROUNDING = 1e-4
 
 
 def golden_probes(a, b) -> tuple[mi.Float, mi.Float]:
@@ -418,15 +421,18 @@ class ChordGrid:
         c3 = 0.5 * (r3 - r0) + 1.5 * (r1 - r2)
         return dr.fma(f, dr.fma(f, dr.fma(f, c3, c2), c1), r1)
 
-    def sdf(self, pair: mi.UInt32, t: mi.Float, reach=None) -> mi.Float:
-        """``B`` exact plus the interpolated ``R`` of ``pair`` at ``t``; with ``reach``, ``R``
-        only where ``B <= reach`` (the rule of :meth:`~vsrd_plugins.sdf.InstanceField.lane_sdfs`)."""
+    def sdf(self, pair: mi.UInt32, t: mi.Float) -> mi.Float:
+        """``B`` exact plus the interpolated ``R`` of ``pair`` at ``t``."""
+        ol, dl, half = [dr.gather(type(x), x, pair) for x in self.views]
+        return box_sdf_local(ol + t * dl, half) + self.residual(pair, t)
+
+    def sdf_within(self, pair: mi.UInt32, t: mi.Float, reach) -> tuple[mi.Float, mi.Float]:
+        """:meth:`sdf` with ``R`` only where ``B <= reach`` (the rule of
+        :meth:`~vsrd_plugins.sdf.InstanceField.lane_sdfs` with ``grad_reach``; elsewhere the
+        value is ``B``, exact), and ``B``."""
         ol, dl, half = [dr.gather(type(x), x, pair) for x in self.views]
         b = box_sdf_local(ol + t * dl, half)
-        r = self.residual(pair, t)
-        if reach is not None:
-            r = dr.select(b <= reach, r, 0.0)
-        return b + r
+        return b + dr.select(b <= reach, self.residual(pair, t), 0.0), b
 
 
 
@@ -784,9 +790,11 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         everywhere: 6.8e-4; ``test_residual_grid_keeps_the_sparse_gradient``). 6 boxes / 16k
         rays: 0.26M exact residuals instead of 1.06M.
         """
-        values = grid.sdf(pairs, s, kw["reach"])
+        values, box = grid.sdf_within(pairs, s, kw["reach"])
         frozen = self._frozen_lanes(values, groups, deep, GRID_TOLERANCE)
-        border = self._run_ends(frozen, groups)
+        # beyond the reach a value is the exact B already (a margin keeps the lanes whose B the
+        # world-frame evaluation of lane_sdfs could put on the other side of the reach)
+        border = self._run_ends(frozen, groups) & (box <= kw["reach"] + REACH_ROUNDING)
         idx = dr.compress(border)
         if dr.width(idx):
             exact = self.field.lane_sdfs(dec, dr.gather(type(p), p, idx), dr.gather(mi.Float, time, idx),

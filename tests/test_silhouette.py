@@ -714,8 +714,10 @@ def test_chord_grid_interpolates_the_residual():
                                  * dr.gather(mi.Vector3f, dl, mi.UInt32(pair)),
                                  dr.gather(mi.Vector3f, half, mi.UInt32(pair))))
     reach = 0.4
-    sdf = np.array(grid.sdf(mi.UInt32(pair), mi.Float(t), reach))
-    np.testing.assert_allclose(sdf, box + np.where(box <= reach, expected, 0.0), atol=2e-6)
+    sdf, b = grid.sdf_within(mi.UInt32(pair), mi.Float(t), reach)
+    np.testing.assert_allclose(np.array(sdf), box + np.where(box <= reach, expected, 0.0), atol=2e-6)
+    np.testing.assert_allclose(np.array(b), box, atol=1e-6)
+    np.testing.assert_allclose(np.array(grid.sdf(mi.UInt32(pair), mi.Float(t))), box + expected, atol=2e-6)
     assert (box > reach).any() and (box <= reach).any()  # both sides of the rule were exercised
 
 
