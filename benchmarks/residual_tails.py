@@ -12,9 +12,10 @@ integral's discrete opacity telescopes over each monotone descent, so every loca
 minimum of ``B + R`` is a place a sample must sit. The settings: uniform tail samples (12-32
 per band, samples left where the band formula puts them, ``residual_tail_scan = 0``), then the
 default 12 with band and tail samples moved to the extrema a detached scan finds (1-3 scan
-points per sample), the default with a coarser residual grid and without it (every scan point
-and sample evaluates the residual; ``residual_grid``), and the default without the sparse AD
-graph.
+points per sample), the default with a coarser residual grid, with the grid always filled by
+the MLP (no per-instance lattice, ``residual_lattice = 0``: the timing differs, the 512
+accuracy rays never use the lattice) and without the grid (every scan point and sample
+evaluates the residual; ``residual_grid``), and the default without the sparse AD graph.
 
 Usage::
 
@@ -50,6 +51,7 @@ SETTINGS = (
     ("moved, scan 2", {"residual_tail_scan": 2}),
     ("default (moved, scan 3)", {}),
     ("default, residual grid 0.75 rad", {"residual_grid": 0.75}),
+    ("default, grid filled by the MLP (no residual lattice)", {"residual_lattice": 0}),
     ("default, exact residual (no grid)", {"residual_grid": 0}),
     ("default, full AD graph", {"residual_sparse_gradients": False}),
 )
