@@ -585,9 +585,14 @@ class ResidualField:
                                             for a in range(3)]))
             values = concat(self.evaluate_grouped(dr.detach(weights), list(range(self.n)), points))
             dr.eval(values)
-        return ResidualLattice(values, mi.UInt32(base.astype(np.uint32)),
-                               tuple(mi.UInt32(counts[:, a].astype(np.uint32)) for a in range(3)),
-                               tuple(mi.Float(v) for v in low), dr.opaque(mi.Float, 1.0 / spacing), self.n)
+        # from Python lists, evaluated: a width-1 array (one instance) made from a NumPy view is
+        # read with the view's alignment, which the kernel's code (and its hash) records, so
+        # the lookups compiled anew whenever that changed
+        meta = ([mi.UInt32(base.tolist())] + [mi.UInt32(counts[:, a].tolist()) for a in range(3)]
+                + [mi.Float(v.tolist()) for v in low])
+        dr.make_opaque(*meta)
+        return ResidualLattice(values, meta[0], tuple(meta[1:4]), tuple(meta[4:]),
+                               dr.opaque(mi.Float, 1.0 / spacing), self.n)
 
     def evaluate_grouped(self, weights: mi.TensorXf, instances: Sequence[int],
                          points: Sequence[mi.Vector3f]) -> list[mi.Float]:

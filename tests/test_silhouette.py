@@ -784,17 +784,25 @@ def test_residual_lattice_matches_the_chord_grid(monkeypatch):
                        np.concatenate([np.array(dr.grad(it.field.params[k])) for k in BOX_KEYS]))
     assert np.abs(out[True][0] - out[False][0]).max() <= 2e-3, np.abs(out[True][0] - out[False][0]).max()
     assert cosine(out[True][1], out[False][1]) >= 0.999, cosine(out[True][1], out[False][1])
-    dims = np.array(it.field.params["box_dims"])
+    # one box too: its per-instance tables are width-1 arrays, whose reads a kernel's code can
+    # record (they were made from NumPy views once, and compiled anew at random steps)
+    single = {key: value[:1] for key, value in scene.items()}
+    one = make(single, residual_lattice=0.35, **kw)
+    runs = [(it, rays), (one, to_mi(*training_rays(np.random.default_rng(3), single, 256)))]
     dr.set_flag(dr.JitFlag.KernelHistory, True)
     try:
-        seen, compiles = set(), []
-        for step in range(3):
-            it.field.params["box_dims"] = mi.Float(dims + 0.15 * step)  # other node counts per box
-            dr.kernel_history()  # clear
-            with dr.suspend_grad():
-                dr.eval(it.render_rays(*rays))
-            compiles.append(new_kernels(seen))
-        assert compiles[1:] == [0, 0], compiles
+        for integ, batch in runs:
+            dims = np.array(integ.field.params["box_dims"])
+            seen, compiles = set(), []
+            # a first pass compiles each sampling layout once, a second with other sizes (other
+            # node counts per box) must compile nothing
+            for offset in (0.0, 0.15, 0.3, 0.07, 0.22, 0.37):
+                integ.field.params["box_dims"] = mi.Float(dims + offset)
+                dr.kernel_history()  # clear
+                with dr.suspend_grad():
+                    dr.eval(integ.render_rays(*batch))
+                compiles.append(new_kernels(seen))
+            assert compiles[3:] == [0] * 3, (integ.field.n, compiles)
     finally:
         dr.set_flag(dr.JitFlag.KernelHistory, False)
 
