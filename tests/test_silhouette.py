@@ -19,8 +19,6 @@ import mitsuba as mi
 from vsrd_plugins.sdf import instance_properties
 from vsrd_plugins.silhouette import PairScan, VSRDSilhouetteIntegrator
 from vsrd_mi.bench.integrator import BenchConfig, central_differences, fd_steps, new_kernels, reference_grid
-from vsrd_mi.geometry.boxes import Box3D
-from vsrd_mi.geometry.iou3d import iou3d
 
 BOX_KEYS = ("box_dims", "box_centre", "box_yaw", "box_velocity")
 #: reference grid spacing as a fraction of 1/s, and at most REF_SPACING_MAX_M: the derivative of a
@@ -294,13 +292,7 @@ def test_residual_sparse_gradients_keep_the_gradient(monkeypatch):
     out = {}
     for sparse in (False, True):
         it = make(scene, residual_sparse_gradients=sparse, **kw)
-        keys = ["box_dims", "box_centre", "box_yaw", "box_velocity"]
-        for k in keys:
-            dr.enable_grad(it.field.params[k])
-        labels = it.render_rays(*rays)[:3]
-        dr.backward(sum(dr.sum(lab * (i + 1.0)) for i, lab in enumerate(labels)))
-        out[sparse] = (np.stack([np.array(dr.detach(x)) for x in labels]),
-                       np.concatenate([np.array(dr.grad(it.field.params[k])) for k in keys]))
+        out[sparse] = labels_and_grads(it, lambda i: i.render_rays(*rays), [1.0, 2.0, 3.0])
     np.testing.assert_allclose(out[True][0], out[False][0], atol=1e-6)
     full, sparse = out[False][1], out[True][1]
     assert np.linalg.norm(full) > 0.0
@@ -744,15 +736,10 @@ def test_residual_grid_matches_the_exact_residual_search():
 
         sdf_module.ResidualField.evaluate_grouped = count
         try:
-            it = make(scene, residual_grid=spacing, **kw)
-            for k in BOX_KEYS:
-                dr.enable_grad(it.field.params[k])
-            labels = it.render_rays(*rays)[:3]
-            dr.backward(sum(dr.sum(lab * (i + 1.0)) for i, lab in enumerate(labels)))
+            out[spacing] = labels_and_grads(make(scene, residual_grid=spacing, **kw),
+                                            lambda i: i.render_rays(*rays), [1.0, 2.0, 3.0])
         finally:
             sdf_module.ResidualField.evaluate_grouped = original
-        out[spacing] = (np.stack([np.array(dr.detach(x)) for x in labels]),
-                        np.concatenate([np.array(dr.grad(it.field.params[k])) for k in BOX_KEYS]))
         points[spacing] = sum(counted)
     assert np.abs(out[0.5][0] - out[0.0][0]).max() <= 3e-3, np.abs(out[0.5][0] - out[0.0][0]).max()
     assert cosine(out[0.5][1], out[0.0][1]) >= 0.999, cosine(out[0.5][1], out[0.0][1])
@@ -776,12 +763,7 @@ def test_residual_lattice_matches_the_chord_grid(monkeypatch):
         if forced:
             monkeypatch.setattr(silhouette, "LATTICE_LOOKUP_COST", -1e9)  # always cheaper
         it = make(scene, residual_lattice=0.35 if forced else 0.0, **kw)
-        for k in BOX_KEYS:
-            dr.enable_grad(it.field.params[k])
-        labels = it.render_rays(*rays)[:3]
-        dr.backward(sum(dr.sum(lab * (i + 1.0)) for i, lab in enumerate(labels)))
-        out[forced] = (np.stack([np.array(dr.detach(x)) for x in labels]),
-                       np.concatenate([np.array(dr.grad(it.field.params[k])) for k in BOX_KEYS]))
+        out[forced] = labels_and_grads(it, lambda i: i.render_rays(*rays), [1.0, 2.0, 3.0])
     assert np.abs(out[True][0] - out[False][0]).max() <= 2e-3, np.abs(out[True][0] - out[False][0]).max()
     assert cosine(out[True][1], out[False][1]) >= 0.999, cosine(out[True][1], out[False][1])
     # one box too: its per-instance tables are width-1 arrays, whose reads a kernel's code can
