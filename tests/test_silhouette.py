@@ -789,6 +789,38 @@ def test_residual_lattice_matches_the_chord_grid(monkeypatch):
         dr.set_flag(dr.JitFlag.KernelHistory, False)
 
 
+def test_residual_lattice_extremes_are_finite(monkeypatch):
+    """The lattice (forced) with boxes at both decoding bounds of their size, a zero yaw vector,
+    a box 100 m away, a camera inside a box and sharpness 3 (a wide margin) to 1e4: labels
+    finite and a partition of unity, gradients finite for every box and residual parameter."""
+    from vsrd_plugins import silhouette
+    monkeypatch.setattr(silhouette, "LATTICE_LOOKUP_COST", -1e9)  # always cheaper
+    scene = {"centres": np.array([[0.0, 0.5, 8.0], [3.0, 0.5, 12.0], [-2.0, 0.5, 100.0]]),
+             "sizes": np.array([[1.8, 1.5, 4.2]] * 3), "yaws": np.array([0.3, 0.0, -1.0]),
+             "velocities": np.zeros((3, 3)), "dynamic": np.zeros(3)}
+    rng = np.random.default_rng(12)
+    o, d, t = training_rays(rng, scene, 192)
+    o[:64] = scene["centres"][0] + rng.uniform(-0.3, 0.3, (64, 3))  # inside the first box
+    rays = to_mi(o, d, t)
+    for s in (3.0, 10.0, 1e4):
+        it = make(scene, residual=True, sharpness=s, temperature=0.1)
+        it.field.params["box_dims"] = mi.Float([-1e4] * 3 + [1e4] * 3 + [0.0] * 3)  # size bounds
+        yaw = np.array(it.field.params["box_yaw"])
+        yaw[2:4] = 0.0  # a zero yaw vector
+        it.field.params["box_yaw"] = mi.Float(yaw)
+        keys = list(BOX_KEYS) + [f"rdf_{k}" for k in it.field.residual.params]
+        params = {k: it.field.params[k] if k in BOX_KEYS else it.field.residual.params[k[4:]] for k in keys}
+        for p_ in params.values():
+            dr.enable_grad(p_)
+        labels = it.render_rays(*rays)
+        dr.backward(sum(dr.sum(lab * (i + 1.0)) for i, lab in enumerate(labels[:3])))
+        vals = np.stack([np.array(dr.detach(x)) for x in labels])
+        assert np.all(np.isfinite(vals)), s
+        np.testing.assert_allclose(vals.sum(0), 1.0, atol=1e-4)
+        for k, p_ in params.items():
+            assert np.all(np.isfinite(np.array(dr.grad(p_)))), (s, k)
+        assert vals[:3, 64:].max() > 0.5  # the rays from outside do see the boxes
+
 def test_residual_lattice_only_where_cheaper():
     """The integrator tabulates the residual when the lattice's nodes, plus a lookup per chord
     grid point, cost fewer MLP evaluations than the chord grid's points (a dense ray batch),
