@@ -400,6 +400,8 @@ class ChordGrid:
     first: mi.UInt32  #: per pair the index of its first grid point in ``r``
     r: mi.Float  #: the residual at every grid point
     rays: int  #: rays per slot
+    pairs: mi.UInt32  #: the pairs that hold a box (grid points > 0), for :class:`PairScan`
+    rank: mi.UInt32  #: per pair its index among those
 
     def residual(self, pair: mi.UInt32, t: mi.Float) -> mi.Float:
         """Interpolated ``R`` of ``pair`` at ray parameter ``t`` (the end values past the chord;
@@ -795,6 +797,7 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         rays: 0.26M exact residuals instead of 1.06M.
         """
         values, box = grid.sdf_within(pairs, s, kw["reach"])
+        dr.eval(values, box)  # one kernel for both
         frozen = self._frozen_lanes(values, groups, deep, GRID_TOLERANCE)
         # beyond the reach a value is the exact B already (a margin keeps the lanes whose B the
         # world-frame evaluation of lane_sdfs could put on the other side of the reach)
@@ -1190,10 +1193,11 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
             if self._residual_search():  # F = B + R of every (slot, ray) pair, built once
                 if cfg.residual_grid > 0:
                     grid = self._chord_grid(dec, slot_views, slot_inst, count, picked)
-                    at = grid.sdf
+                    # the grid's valid pairs (no second compress: it costs a host round trip)
+                    sdf = PairScan(grid.points > 0, grid.pairs, grid.rank, grid.sdf)
                 else:
-                    at = self._pair_sdf(slot_views, slot_inst)
-                sdf = PairScan.of(concat([count > b for b in range(len(slot_inst))]), at)
+                    sdf = PairScan.of(concat([count > b for b in range(len(slot_inst))]),
+                                      self._pair_sdf(slot_views, slot_inst))
                 fmin = self._residual_minima(sdf, slot_views, count, picked)
             use_tail = self._tail_samples()[1] > 0
             anchors, slot_hit, slot_ts, tails, deepests = [], [], [], [], []
@@ -1446,7 +1450,8 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         first = dr.prefix_sum(points)  # exclusive
         h = chord / mi.Float(dr.maximum(points, 2) - 1)
         inv_h = dr.select(h > 0.0, dr.rcp(dr.select(h > 0.0, h, 1.0)), 0.0)
-        dr.eval(a, points, first, h, inv_h)
+        rank = dr.prefix_sum(mi.UInt32(points > 0))  # exclusive
+        dr.eval(a, points, first, h, inv_h, rank)
         total = int(dr.sum(points)[0])
         # grid lane -> its pair: mark each pair's first lane, count the marks up to a lane
         busy = dr.compress(points > 0)
@@ -1463,7 +1468,7 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
             ol, dl = [dr.gather(type(x), x, pair) for x in flat[:2]]
             r = lattice.residual(dr.gather(mi.UInt32, concat(slot_inst), pair), ol + t_grid * dl)
         dr.eval(r)
-        return ChordGrid(flat, a, inv_h, points, first, r, n)
+        return ChordGrid(flat, a, inv_h, points, first, r, n, busy, rank)
 
     def _residual_lattice(self, dec, grid_points: int) -> ResidualLattice | None:
         """The residual tabulated per instance (:class:`~vsrd_plugins.sdf.ResidualLattice`,
@@ -1477,8 +1482,9 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         if self.cfg.residual_lattice <= 0:
             return None
         spacing = self.cfg.residual_lattice / self._residual_omega()
-        margin = float(dr.detach(self._residual_reach())[0])
-        extents = np.stack([dr.detach(h).numpy() for h in dec.half], axis=1) + margin
+        margin, half = dr.detach(self._residual_reach()), [dr.detach(h) for h in dec.half]
+        dr.eval(margin, half)  # one kernel, then plain reads
+        extents = np.stack([h.numpy() for h in half], axis=1) + float(margin[0])
         nodes = int(ResidualLattice.node_counts(extents, spacing).prod(axis=1).sum())
         if nodes >= grid_points * (1.0 - LATTICE_LOOKUP_COST):
             return None
@@ -1626,9 +1632,11 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         a, b, ts = concat(a_s), concat(b_s), concat(ts_s)
         k = cfg.residual_scan
         step = (b - a) / (k - 1)
-        # candidates: k uniform points of [a, b], then t*
-        cand = [dr.fma(step, float(i), a) for i in range(k)] + [ts]
-        values = sdf(concat([dr.gather(mi.Float, c, sdf.pairs) for c in cand]), k + 1)
+        # candidates: k uniform points of [a, b], then t*; per valid pair, in one expression
+        block, pair = sdf.block_pairs(k + 1)
+        cand = dr.select(block == k, dr.gather(mi.Float, ts, pair),
+                         dr.fma(dr.gather(mi.Float, step, pair), mi.Float(block), dr.gather(mi.Float, a, pair)))
+        values = sdf(cand, k + 1)
         width = n_slots * n
         best_v = dr.full(mi.Float, 1e30, width)
         best_i = dr.zeros(mi.UInt32, width)

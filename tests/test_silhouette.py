@@ -693,7 +693,7 @@ def test_chord_grid_interpolates_the_residual():
     dl = mi.Vector3f(mi.Float([0.8, 0.6]), mi.Float([0.0, 0.1]), mi.Float([0.6, 0.79]))
     half = mi.Vector3f(mi.Float([1.0, 0.9]), mi.Float([0.8, 0.7]), mi.Float([2.0, 2.2]))
     grid = ChordGrid((ol, dl, half), mi.Float(starts), mi.Float((counts - 1) / lengths),
-                     mi.UInt32(counts), mi.UInt32(first), mi.Float(r), 2)
+                     mi.UInt32(counts), mi.UInt32(first), mi.Float(r), 2, mi.UInt32([0, 1]), mi.UInt32([0, 1]))
     pair = np.repeat([0, 1], 50)
     t = np.concatenate([rng.uniform(s0, s0 + ln, 50) for s0, ln in zip(starts, lengths)])
     expected = np.array([quad[p][0] + quad[p][1] * (x - starts[p]) + quad[p][2] * (x - starts[p]) ** 2
