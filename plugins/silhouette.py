@@ -427,17 +427,20 @@ class ChordGrid:
         c3 = 0.5 * (r3 - r0) + 1.5 * (r1 - r2)
         return dr.fma(f, dr.fma(f, dr.fma(f, c3, c2), c1), r1)
 
+    def box(self, pair: mi.UInt32, t: mi.Float) -> mi.Float:
+        """The exact box SDF ``B`` of ``pair`` at ray parameter ``t``."""
+        ol, dl, half = [dr.gather(type(x), x, pair) for x in self.views]
+        return box_sdf_local(ol + t * dl, half)
+
     def sdf(self, pair: mi.UInt32, t: mi.Float) -> mi.Float:
         """``B`` exact plus the interpolated ``R`` of ``pair`` at ``t``."""
-        ol, dl, half = [dr.gather(type(x), x, pair) for x in self.views]
-        return box_sdf_local(ol + t * dl, half) + self.residual(pair, t)
+        return self.box(pair, t) + self.residual(pair, t)
 
     def sdf_within(self, pair: mi.UInt32, t: mi.Float, reach) -> tuple[mi.Float, mi.Float]:
         """:meth:`sdf` with ``R`` only where ``B <= reach`` (the rule of
         :meth:`~vsrd_plugins.sdf.InstanceField.lane_sdfs` with ``grad_reach``; elsewhere the
         value is ``B``, exact), and ``B``."""
-        ol, dl, half = [dr.gather(type(x), x, pair) for x in self.views]
-        b = box_sdf_local(ol + t * dl, half)
+        b = self.box(pair, t)
         return b + dr.select(b <= reach, self.residual(pair, t), 0.0), b
 
 
@@ -1460,13 +1463,13 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         pair = dr.gather(mi.UInt32, busy, dr.cumsum(mark) - 1)
         j = dr.arange(mi.UInt32, total) - dr.gather(mi.UInt32, first, pair)
         t_grid = dr.fma(dr.gather(mi.Float, h, pair), mi.Float(j), dr.gather(mi.Float, a, pair))
-        flat = self._pair_views(slot_views)
+        flat, inst = self._pair_views(slot_views), concat(slot_inst)
         lattice = self._residual_lattice(dec, total)
         if lattice is None:
-            r = self._pair_residuals(flat, concat(slot_inst), pair, t_grid)
+            r = self._pair_residuals(flat, inst, pair, t_grid)
         else:
-            ol, dl = [dr.gather(type(x), x, pair) for x in flat[:2]]
-            r = lattice.residual(dr.gather(mi.UInt32, concat(slot_inst), pair), ol + t_grid * dl)
+            pl, ik = self._pair_points(flat, inst, pair, t_grid)
+            r = lattice.residual(ik, pl)
         dr.eval(r)
         return ChordGrid(flat, a, inv_h, points, first, r, n, busy, rank)
 
@@ -1490,14 +1493,19 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
             return None
         return self.field.residual.lattice(self.field.residual_weights(), extents, spacing)
 
+    @staticmethod
+    def _pair_points(flat, inst: mi.UInt32, pair: mi.UInt32, t: mi.Float) -> tuple[mi.Vector3f, mi.UInt32]:
+        """Box-local point at ray parameter ``t`` and instance of each lane's (slot, ray)
+        ``pair`` (``flat``, ``inst``: as for :meth:`_pair_residuals`)."""
+        ol, dl = [dr.gather(type(x), x, pair) for x in flat[:2]]
+        return ol + t * dl, dr.gather(mi.UInt32, inst, pair)
+
     def _pair_residuals(self, flat, inst: mi.UInt32, pair: mi.UInt32, t: mi.Float) -> mi.Float:
         """Residual ``R`` of each lane's (slot, ray) ``pair`` at ray parameter ``t`` (detached;
         ``flat``: the pairs' box-local origins, directions and half sizes; ``inst``: the pairs'
         instances, ``num_instances`` for an invalid slot, whose ``R`` is 0), every instance in
         one batched evaluation."""
-        ol, dl = [dr.gather(type(x), x, pair) for x in flat[:2]]
-        pl = ol + t * dl
-        ik = dr.gather(mi.UInt32, inst, pair)
+        pl, ik = self._pair_points(flat, inst, pair, t)
         dr.eval(pl, ik)
         groups = [(k, dr.compress(ik == k)) for k in range(self.field.n)]
         groups = [(k, idx) for k, idx in groups if dr.width(idx)]
@@ -1649,8 +1657,7 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
             lo = dr.maximum(t_min - step, a)
             hi = dr.minimum(t_min + step, b)
             x1, x2 = golden_probes(lo, hi)
-            f12 = sdf(concat([dr.gather(mi.Float, x, sdf.pairs) for x in (x1, x2)]), 2)
-            state = (lo, hi, x1, x2, sdf.spread(f12, 0), sdf.spread(f12, 1))
+            state = (lo, hi, x1, x2, sdf.full(x1), sdf.full(x2))
             # unrolled, not golden_section's symbolic loop: the residual MLP runs as tensor-mode
             # kernels, which cannot be traced inside one
             for _ in range(cfg.residual_golden):
