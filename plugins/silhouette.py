@@ -207,11 +207,9 @@ GAP_WINDOW = 4
 #: other in the graph, which froze a sample the graph saw as the minimum (box gradient off by
 #: 0.25 % relative on a 3-box test scene instead of < 0.05 %).
 MONOTONE_TOLERANCE = 1e-5
-#: Moved samples (:meth:`VSRDSilhouetteIntegrator._snapped_positions`): an extremum of
-#: ``B + R`` whose own cell's sample is taken by an earlier one takes the next free sample at
-#: most this many cells on.
-SNAP_CHAIN = 3
-#: ... and counts only where it differs from a neighbouring scan point by more than this (m).
+#: Moved samples (:meth:`VSRDSilhouetteIntegrator._snapped_positions`): a local extremum of
+#: the scan of ``B + R`` claims a sample only where it differs from a neighbouring scan point
+#: by more than this (m; above the chord grid's interpolation wiggles on flat stretches).
 SNAP_PROMINENCE = 2e-4
 #: Probe distance (m) on either side of a kink of ``B`` (:meth:`VSRDSilhouetteIntegrator._kink_minima`).
 KINK_PROBE = 1e-3

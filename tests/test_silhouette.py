@@ -888,6 +888,43 @@ def test_moved_samples_share_a_cell_with_two_extrema():
         assert np.min(np.abs(pos - x)) <= 0.1 * w, (x, pos)
 
 
+def test_moved_samples_take_crowded_extrema_and_kinks():
+    """Two extrema of ``B + R`` in the last cell of a sub-band (no sample after it to lend one)
+    both get a sample, an earlier one borrowed for the first; a kink where ``F`` has a local
+    minimum (``kink``, a hit's deepest point) gets a sample exactly; the samples stay sorted
+    (:meth:`_snapped_positions`). With the kink left out, the scan's parabola across it misses
+    it by more."""
+    it = make({"centres": np.array([[0.0, 0.0, 10.0]]), "sizes": np.array([[1.8, 1.5, 4.2]]),
+               "yaws": np.zeros(1)}, residual=True)
+    k, a, b = 6, 0.0, 6.0
+    nominal = [float(np.array(it._sub_sample(mi.Float(a), mi.Float(b), i, k))[0]) for i in range(k + 1)]
+    lo, hi = nominal[5], nominal[6]  # the last cell holds a full period of a sine
+    w, amp, slope = hi - lo, 0.3, 0.3
+    kink = 0.4 * nominal[1] + 0.6 * nominal[2]
+
+    def f(t):
+        bump = np.where((t > lo) & (t < hi), amp * np.sin(2.0 * np.pi * (t - lo) / w), 0.0)
+        return slope * t + 0.5 * np.abs(t - kink) + bump
+
+    def at(pair, t):
+        return mi.Float(f(np.array(t, dtype=np.float64)).astype(np.float32))
+
+    def moved(kinks):
+        with dr.suspend_grad():
+            sdf = PairScan.of(mi.Bool([True, True]), at)
+            out = it._snapped_positions(sdf, [mi.Float([a, a])], [mi.Float([b, b])], k, k, kink=kinks)[0]
+        return np.array([np.array(p)[0] for p in out])
+
+    pos = moved(mi.Float([kink, kink]))
+    assert np.all(np.diff(pos) >= 0.0), pos
+    slope_right = slope + 0.5
+    phase = np.arccos(-slope_right * w / (2.0 * np.pi * amp))
+    for x in lo + w * np.array([phase, 2.0 * np.pi - phase]) / (2.0 * np.pi):
+        assert np.min(np.abs(pos - x)) <= 0.1 * w, (x, pos)
+    assert np.min(np.abs(pos - kink)) <= 1e-5, (kink, pos)
+    assert np.min(np.abs(moved(None) - kink)) > 1e-3
+
+
 def test_residual_grid_keeps_the_sparse_gradient():
     """With the chord grid, the interpolated values sort the samples into frozen or not with a
     margin (``GRID_TOLERANCE``) above the interpolation error, and the candidates get exact
