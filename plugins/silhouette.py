@@ -27,8 +27,8 @@ r"""Instance-aware NeuS silhouette integrator (``vsrd_silhouette``).
    - Adaptive sampling with the residual: points scanned per band for the least ``B + R``
      along the ray, golden-section steps refining it (0 scan points: use the box's least
      ``B``), tail samples per band covering the rest of the box's chord, where ``B + R``
-     can dip again (0: none), and detached scan points per band and tail sample that move it
-     to a local extremum of ``B + R`` in its cell (0: none). (Default: 4, 0, 12, 3)
+     can dip again (0: none), and detached scan points per band and tail sample that move
+     the samples to the local extrema of ``B + R`` they find (0: none). (Default: 4, 0, 12, 3)
  * - residual_grid, residual_lattice
    - |float|
    - Adaptive sampling with the residual: the scans above and the detached values that sort
@@ -121,9 +121,10 @@ maxima and descents of ``f``, which is what the two sampling strategies target:
   rest of the chord; a miss whose minimum lies far into its chord puts it at its extra sample
   and spreads the band before it, :meth:`~VSRDSilhouetteIntegrator._lengthwise_miss`), where
   ``B + R`` can dip again. The opacity telescopes over each
-  monotone run of ``f``, so with the field every band and tail sample moves to a local extremum
-  of ``B + R`` that a detached scan (``residual_tail_scan`` points per sample) finds in its
-  own cell (:meth:`~VSRDSilhouetteIntegrator._snapped_positions`); those scans read ``R``
+  monotone run of ``f``, so with the field every local extremum of ``B + R`` that a detached
+  scan (``residual_tail_scan`` points per sample) finds, and a hit's deepest point where it is
+  one, claims a band or tail sample in order along the ray
+  (:meth:`~VSRDSilhouetteIntegrator._snapped_positions`); those scans read ``R``
   interpolated from a grid of exact values along the chord (``R`` is smooth, ``B`` exact,
   :meth:`~VSRDSilhouetteIntegrator._chord_grid`; filled from a per-instance lattice of ``R``
   where the ray batch is dense, :meth:`~VSRDSilhouetteIntegrator._residual_lattice`), and run
@@ -380,7 +381,7 @@ class Slot:
     deepest: mi.Float  #: the sample at the box's least ``B + R`` (a hit's deepest point)
     #: a hit's deepest point of the box, the kink of ``B`` along the ray where ``B + R`` can have
     #: a minimum (with the residual's moved samples; ``-1``: none)
-    kink: mi.Float = None
+    kink: mi.Float
     #: band and tail positions moved to the extrema of ``B + R``, in the order
     #: :meth:`VSRDSilhouetteIntegrator._snapped_slots` returns them (empty: not moved)
     moved: tuple = ()
@@ -551,8 +552,8 @@ class SamplingConfig:
     #: box's exit, where ``B + R`` can have further local minima (a ray along a face: the
     #: residual's wiggles against a nearly constant ``B``); see :meth:`_tail_samples`.
     residual_tail: int = 12
-    #: With the tail samples: detached scan points per band or tail sample; each moves to a
-    #: local extremum of ``B + R`` that the scan finds in its own cell (0: samples stay where
+    #: With the tail samples: detached scan points per band or tail sample; each local extremum
+    #: of ``B + R`` the scan finds claims a sample, in order (0: samples stay where
     #: :meth:`VSRDSilhouetteIntegrator._sub_sample` puts them); see
     #: :meth:`VSRDSilhouetteIntegrator._snapped_positions`.
     residual_tail_scan: int = 3
@@ -1610,6 +1611,7 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         kcell = mi.UInt32(1)
         for i in range(1, cells):
             kcell += dr.select(nominal[i] < kt, 1, 0)
+        kcell = dr.minimum(kcell, k)  # the fixed sample's cell claims the last moved one
         events = []
         q = dr.select(pending, 1, 0)
         for m in range(1, len(ts) - 1):
@@ -1643,10 +1645,10 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
 
         for x1, extremum, vertex, cell in events:
             due = pending & (kt <= x1)
-            place(due, kt, dr.minimum(kcell, k))
+            place(due, kt, kcell)
             pending &= ~due
             place(extremum, vertex, mi.UInt32(cell))
-        place(pending, kt, dr.minimum(kcell, k))
+        place(pending, kt, kcell)
         # the samples no extremum took keep their nominal places, clipped between the taken
         # ones around them: the samples stay sorted
         low = mi.Float(-dr.inf)
@@ -1657,12 +1659,11 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         for i in reversed(range(k)):
             pos[i] = dr.minimum(pos[i], high)
             high = dr.select(taken[i], pos[i], high)
-        out = pos
         # every moved position in one kernel (the per-slot gathers below would evaluate each
         # alone, re-reading the scan values once per position)
-        dr.eval(out)
+        dr.eval(pos)
         no = dr.opaque(mi.UInt32, n)
-        return [[dr.gather(mi.Float, p, dr.arange(mi.UInt32, n) + no * s_) for p in out] for s_ in range(n_slots)]
+        return [[dr.gather(mi.Float, p, dr.arange(mi.UInt32, n) + no * s_) for p in pos] for s_ in range(n_slots)]
 
     def _residual_minima(self, sdf, slot_views, count, picked: list[Picked]) -> list[mi.Float]:
         """Per slot, where the instance SDF ``F = B + R`` is least along the ray (detached;

@@ -858,32 +858,49 @@ def test_pair_scan_evaluates_the_valid_pairs_only():
         np.testing.assert_allclose(np.array(scan.full(mi.Float([5.0, 6.0, 7.0, 8.0, 9.0]))),
                                    [5.0, 0.0, 27.0, 0.0, 49.0], atol=1e-5)
 
-def test_moved_samples_share_a_cell_with_two_extrema():
-    """A cell of the snapped sub-bands holding a maximum and a minimum of ``B + R`` keeps one
-    for its own sample and lends the other to the neighbour on that side, whose own cell has no
-    extremum (:meth:`_snapped_positions`): both extrema get a sample, within a tenth of the
-    cell, and the samples stay sorted."""
+def sine_cell_scan(cell: int, amp: float, slope: float, kink_between: tuple[int, int] | None = None):
+    """A sub-band of ``k = 6`` moved samples over ``[0, 6]`` (one-box residual integrator, two
+    rays) and ``F = slope t + 0.5 |t - kink|`` (no kink term without ``kink_between``: the kink
+    sits 60 % of the way between those two nominal samples) plus a full sine period of
+    amplitude ``amp`` across the cell of nominal sample ``cell``. Returns ``moved(kinks)`` (the
+    first ray's moved positions, :meth:`_snapped_positions`), the sine cell's two extrema of
+    ``F``, its width and the kink (``None`` without one)."""
     it = make({"centres": np.array([[0.0, 0.0, 10.0]]), "sizes": np.array([[1.8, 1.5, 4.2]]),
                "yaws": np.zeros(1)}, residual=True)
     k, a, b = 6, 0.0, 6.0
     nominal = [float(np.array(it._sub_sample(mi.Float(a), mi.Float(b), i, k))[0]) for i in range(k + 1)]
-    lo, hi = nominal[2], nominal[3]  # the third cell holds a full period of a sine
-    w, amp, slope = hi - lo, 0.1, 0.3
+    lo, hi = nominal[cell - 1], nominal[cell]
+    w = hi - lo
+    kink = None if kink_between is None else 0.4 * nominal[kink_between[0]] + 0.6 * nominal[kink_between[1]]
 
     def f(t):
         bump = np.where((t > lo) & (t < hi), amp * np.sin(2.0 * np.pi * (t - lo) / w), 0.0)
-        return slope * t + bump
+        return slope * t + (0.0 if kink is None else 0.5 * np.abs(t - kink)) + bump
 
     def at(pair, t):
         return mi.Float(f(np.array(t, dtype=np.float64)).astype(np.float32))
 
-    with dr.suspend_grad():
-        sdf = PairScan.of(mi.Bool([True, True]), at)
-        moved = it._snapped_positions(sdf, [mi.Float([a, a])], [mi.Float([b, b])], k, k)[0]
-    pos = np.array([np.array(p)[0] for p in moved])
-    assert np.all(np.diff(pos) >= 0.0), pos
-    phase = np.arccos(-slope * w / (2.0 * np.pi * amp))
+    def moved(kinks=None):
+        with dr.suspend_grad():
+            sdf = PairScan.of(mi.Bool([True, True]), at)
+            out = it._snapped_positions(sdf, [mi.Float([a, a])], [mi.Float([b, b])], k, k, kink=kinks)[0]
+        return np.array([np.array(p)[0] for p in out])
+
+    # F's slope across the sine cell (after the kink where there is one)
+    local_slope = slope + (0.0 if kink is None else 0.5)
+    phase = np.arccos(-local_slope * w / (2.0 * np.pi * amp))
     extrema = lo + w * np.array([phase, 2.0 * np.pi - phase]) / (2.0 * np.pi)
+    return moved, extrema, w, kink
+
+
+def test_moved_samples_share_a_cell_with_two_extrema():
+    """A cell of the snapped sub-bands holding a maximum and a minimum of ``B + R``: both
+    extrema claim a sample, the second the next cell's, whose own cell has none
+    (:meth:`_snapped_positions`): both get a sample within a tenth of the cell, and the
+    samples stay sorted."""
+    moved, extrema, w, _ = sine_cell_scan(3, 0.1, 0.3)
+    pos = moved()
+    assert np.all(np.diff(pos) >= 0.0), pos
     for x in extrema:
         assert np.min(np.abs(pos - x)) <= 0.1 * w, (x, pos)
 
@@ -894,32 +911,10 @@ def test_moved_samples_take_crowded_extrema_and_kinks():
     minimum (``kink``, a hit's deepest point) gets a sample exactly; the samples stay sorted
     (:meth:`_snapped_positions`). With the kink left out, the scan's parabola across it misses
     it by more."""
-    it = make({"centres": np.array([[0.0, 0.0, 10.0]]), "sizes": np.array([[1.8, 1.5, 4.2]]),
-               "yaws": np.zeros(1)}, residual=True)
-    k, a, b = 6, 0.0, 6.0
-    nominal = [float(np.array(it._sub_sample(mi.Float(a), mi.Float(b), i, k))[0]) for i in range(k + 1)]
-    lo, hi = nominal[5], nominal[6]  # the last cell holds a full period of a sine
-    w, amp, slope = hi - lo, 0.3, 0.3
-    kink = 0.4 * nominal[1] + 0.6 * nominal[2]
-
-    def f(t):
-        bump = np.where((t > lo) & (t < hi), amp * np.sin(2.0 * np.pi * (t - lo) / w), 0.0)
-        return slope * t + 0.5 * np.abs(t - kink) + bump
-
-    def at(pair, t):
-        return mi.Float(f(np.array(t, dtype=np.float64)).astype(np.float32))
-
-    def moved(kinks):
-        with dr.suspend_grad():
-            sdf = PairScan.of(mi.Bool([True, True]), at)
-            out = it._snapped_positions(sdf, [mi.Float([a, a])], [mi.Float([b, b])], k, k, kink=kinks)[0]
-        return np.array([np.array(p)[0] for p in out])
-
+    moved, extrema, w, kink = sine_cell_scan(6, 0.3, 0.3, kink_between=(1, 2))
     pos = moved(mi.Float([kink, kink]))
     assert np.all(np.diff(pos) >= 0.0), pos
-    slope_right = slope + 0.5
-    phase = np.arccos(-slope_right * w / (2.0 * np.pi * amp))
-    for x in lo + w * np.array([phase, 2.0 * np.pi - phase]) / (2.0 * np.pi):
+    for x in extrema:
         assert np.min(np.abs(pos - x)) <= 0.1 * w, (x, pos)
     assert np.min(np.abs(pos - kink)) <= 1e-5, (kink, pos)
     assert np.min(np.abs(moved(None) - kink)) > 1e-3
