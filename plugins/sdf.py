@@ -312,6 +312,43 @@ def face_planes(p: mi.Vector3f, half: mi.Vector3f) -> list[mi.Float]:
     return [p[i] - half[i] for i in range(3)] + [-p[i] - half[i] for i in range(3)]
 
 
+#: At most this many kinks of the box SDF along a ray inside its box (:func:`box_ray_kinks`):
+#: the upper envelope of six lines whose slopes increase at every kink has at most six pieces.
+BOX_RAY_KINKS = 5
+
+
+def box_ray_kinks(o: mi.Vector3f, d: mi.Vector3f, half: mi.Vector3f, t0: mi.Float, t1: mi.Float,
+                  count: int = BOX_RAY_KINKS) -> list[mi.Float]:
+    """The kinks of :func:`box_sdf_local` along the box-local ray ``o + t d`` within ``(t0, t1)``,
+    a stretch inside the box (detached): ``count`` arrays, ascending, ``-1`` past the last kink.
+
+    Inside the box ``B`` is the max of the six :func:`face_planes`, each linear along the ray:
+    ``B`` is their upper envelope, convex and piecewise linear, and its slope increases at every
+    kink. Walking from ``t0``, where the largest plane (of ties, the steepest) is the envelope,
+    the next kink is the earliest crossing of the current plane with a steeper one (of ties, the
+    steepest takes over). Parallel planes never cross; ``d`` need not be normalised."""
+    with dr.suspend_grad():
+        o, d, half, t0, t1 = (dr.detach(x) for x in (o, d, half, t0, t1))
+        v0 = face_planes(o + t0 * d, half)  # each plane: v0_j + g_j (t - t0)
+        slopes = [d[i] for i in range(3)] + [-d[i] for i in range(3)]
+        vc, gc = v0[0], slopes[0]
+        for v, g in zip(v0[1:], slopes[1:]):
+            take = (v > vc) | ((v == vc) & (g > gc))
+            vc, gc = dr.select(take, v, vc), dr.select(take, g, gc)
+        out, at = [], mi.Float(0.0)  # at: the last kink's offset from t0
+        for _ in range(count):
+            best, vb, gb = mi.Float(dr.inf), vc, gc
+            for v, g in zip(v0, slopes):
+                steeper = g > gc
+                cross = dr.maximum((vc - v) / dr.select(steeper, g - gc, 1.0), at)
+                take = steeper & ((cross < best) | ((cross == best) & (g > gb)))
+                best, vb, gb = dr.select(take, cross, best), dr.select(take, v, vb), dr.select(take, g, gb)
+            t = t0 + best
+            out.append(dr.select(t < t1, t, -1.0))
+            at, vc, gc = dr.select(dr.isfinite(best), best, at), vb, gb
+        return out
+
+
 def ridge_faces(p: mi.Vector3f, d: mi.Vector3f, half: mi.Vector3f,
                 tol: float | mi.Float = RIDGE_TOLERANCE) -> tuple[mi.Bool, mi.UInt32, mi.UInt32, mi.Float]:
     """The ridge of :func:`box_sdf_ray_local` at ``p`` (detached): whether the faces within

@@ -182,7 +182,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from .sdf import (LATTICE_LOOKUP_COST, RIDGE_TOLERANCE, InstanceField, ResidualLattice, box_normal_local, box_sdf_local, concat, envelope_blend,
+from .sdf import (LATTICE_LOOKUP_COST, RIDGE_TOLERANCE, InstanceField, ResidualLattice, box_normal_local, box_ray_kinks, box_sdf_local, concat, envelope_blend,
                   envelope_weight, ray_box_interval, scene_sdf, softmin_labels, softplus)
 
 GOLDEN = 0.6180339887498949
@@ -214,6 +214,11 @@ MONOTONE_TOLERANCE = 1e-5
 SNAP_PROMINENCE = 2e-4
 #: Probe distance (m) on either side of a kink of ``B`` (:meth:`VSRDSilhouetteIntegrator._kink_minima`).
 KINK_PROBE = 1e-3
+#: Bisection steps that move a gap peak to the crossing of two instance SDFs ``B + R``
+#: (:meth:`VSRDSilhouetteIntegrator._residual_peaks`): a gap of 10 m to 10 um.
+PEAK_BISECTIONS = 20
+#: Kink minima of ``B + R`` per (slot, ray) pair that take a moved sample (:meth:`VSRDSilhouetteIntegrator._kink_minima`).
+KINK_MINIMA = 2
 #: Fewest grid points per chord of :meth:`VSRDSilhouetteIntegrator._chord_grid`.
 GRID_MIN_POINTS = 4
 #: Monotone margin (m) with which interpolated values sort samples into frozen or not
@@ -379,9 +384,6 @@ class Slot:
     peak_b: mi.Float  #: the peak's falling slot
     tail_end: mi.Float  #: end of the second tail (the enlarged box's exit)
     deepest: mi.Float  #: the sample at the box's least ``B + R`` (a hit's deepest point)
-    #: a hit's deepest point of the box, the kink of ``B`` along the ray where ``B + R`` can have
-    #: a minimum (with the residual's moved samples; ``-1``: none)
-    kink: mi.Float
     #: band and tail positions moved to the extrema of ``B + R``, in the order
     #: :meth:`VSRDSilhouetteIntegrator._snapped_slots` returns them (empty: not moved)
     moved: tuple = ()
@@ -1213,7 +1215,7 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
                                       self._pair_sdf(slot_views, slot_inst))
                 fmin = self._residual_minima(sdf, slot_views, count, picked)
             use_tail = self._tail_samples()[1] > 0
-            anchors, slot_hit, slot_ts, tails, deepests, kinks = [], [], [], [], [], []
+            anchors, slot_hit, slot_ts, tails, deepests = [], [], [], [], []
             for b, pk in enumerate(picked):
                 valid, e0, e1, ts, c, hb = pk.valid, pk.entry, pk.exit, pk.tstar, pk.centre, pk.hit
                 if fmin is not None:
@@ -1250,19 +1252,25 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
                 tails.append(dr.select(valid, tail, cfg.far))
                 slot_hit.append(valid & hb)
                 slot_ts.append(dr.select(valid, ts, cfg.far))
-                kinks.append(dr.select(valid & hb, ts, -1.0))
             # every slot's anchors in one kernel: the searches and scans below read them per
             # slot (a concatenation scatters each alone), which evaluated each anchor in a kernel
             # of its own, recomputing the slot selection every time
-            dr.eval(anchors, deepests, tails, slot_hit, slot_ts, kinks)
+            dr.eval(anchors, deepests, tails, slot_hit, slot_ts)
             peaks = self._gap_peaks(slot_views, slot_ts, count)
+            if sdf is not None:  # with the residual the boxes' instance SDFs cross elsewhere
+                peaks = self._residual_peaks(sdf, peaks, slot_ts)
             slots = [Slot(*anchor, peak=dr.select(pk.ok, pk.t, anchor[4]),
                           peak_lambda=dr.select(pk.ok, pk.lam, -1.0), peak_a=pk.a, peak_b=pk.b,
-                          tail_end=tail, deepest=deep, kink=kink)
-                     for anchor, pk, tail, deep, kink in zip(anchors, peaks, tails, deepests, kinks)]
+                          tail_end=tail, deepest=deep)
+                     for anchor, pk, tail, deep in zip(anchors, peaks, tails, deepests)]
             if self._snaps():  # band and tail samples at the extrema of B + R
+                # the kinks of each hit box's B along the ray: where B + R can have a minimum
+                # that a parabola through scan points misses
+                kinks = [box_ray_kinks(*sv, dr.select(pk.valid & pk.hit, pk.centre, 0.0),
+                                       dr.select(pk.valid & pk.hit, pk.surface_exit, -1.0))
+                         for sv, pk in zip(slot_views, picked)]
                 slots = [replace(sl, moved=tuple(x for part in parts for x in part)) for sl, parts in
-                         zip(slots, zip(*self._snapped_slots(sdf, slots)))]
+                         zip(slots, zip(*self._snapped_slots(sdf, slots, kinks)))]
             isolated = self._isolated(picked, count)
             dr.eval(count, slots, slot_inst, slot_hit, isolated)
         return ray_idx, count, slots, slot_inst, slot_hit, isolated, grid
@@ -1387,6 +1395,49 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
             out.append(GapPeak(tp, ok, lam, mi.Float(a), mi.Float(a2)))
         return out + [none]
 
+    @staticmethod
+    def _residual_peaks(sdf, peaks: list[GapPeak], slot_ts: list[mi.Float]) -> list[GapPeak]:
+        """The gap peaks of :meth:`_gap_peaks` (found on the boxes' ``B``) moved to where the
+        instance SDFs ``F = B + R`` of their two crossing slots cross (detached; ``sdf``: the
+        :class:`PairScan` of the pairs), with the envelope weight from ``F``'s slopes there.
+
+        ``R >= 0`` moves the crossing by up to its own size, and the descent into the next box
+        telescopes from the scene SDF's peak: on the box peak a ray's labels were off by up to
+        0.011 (random 2-3-box scenes). ``F_a - F_a'`` rises through the gap (``a`` rising, ``a'``
+        falling), so :data:`PEAK_BISECTIONS` bisection steps between the two slots' deepest
+        points find the crossing; a gap where it does not change sign keeps the box peak."""
+        n = dr.width(slot_ts[0])
+        out = []
+        for b, pk in enumerate(peaks[:-1]):
+            ray, no = dr.arange(mi.UInt32, n), dr.opaque(mi.UInt32, n)  # opaque: n changes
+            pa, pb = mi.UInt32(pk.a) * no + ray, mi.UInt32(pk.b) * no + ray
+            pair = concat([pa, pb])
+
+            def gap(t):  # F_a - F_a' at one t per ray
+                f = sdf.at(pair, concat([t, t]))
+                return dr.gather(mi.Float, f, ray) - dr.gather(mi.Float, f, ray + no)
+
+            lo, hi = slot_ts[b], dr.maximum(slot_ts[b + 1], slot_ts[b])
+            ok = pk.ok & (gap(lo) < 0.0) & (gap(hi) > 0.0)
+            for _ in range(PEAK_BISECTIONS):
+                mid = 0.5 * (lo + hi)
+                above = gap(mid) > 0.0
+                lo, hi = dr.select(above, lo, mid), dr.select(above, mid, hi)
+                dr.eval(lo, hi)
+            t = dr.select(ok, 0.5 * (lo + hi), pk.t)
+            # slopes of F_a, F_a' along the ray at the crossing (central differences)
+            probes = sdf.at(concat([pa, pa, pb, pb]), concat([t + KINK_PROBE, t - KINK_PROBE] * 2))
+            slope = [(dr.gather(mi.Float, probes, ray + dr.opaque(mi.UInt32, i * n))
+                      - dr.gather(mi.Float, probes, ray + dr.opaque(mi.UInt32, (i + 1) * n))) * (0.5 / KINK_PROBE)
+                     for i in (0, 2)]
+            crossing = ok & (slope[0] > 0.0) & (slope[1] < 0.0)
+            lam = dr.select(crossing, envelope_weight(dr.select(crossing, slope[0], 1.0),
+                                                      dr.select(crossing, slope[1], -1.0)),
+                            dr.select(ok, -1.0, pk.lam))
+            dr.eval(t, lam)
+            out.append(GapPeak(t, pk.ok, lam, pk.a, pk.b))
+        return out + peaks[-1:]
+
     def _slot_view(self, views, kb: mi.UInt32) -> tuple:
         """Per ray the box-local ``(origin, direction, half)`` of instance ``kb`` (``views`` per
         instance; instance 0 where ``kb`` is no instance)."""
@@ -1400,38 +1451,52 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         (:meth:`_snapped_positions`): the tail samples are on and ``residual_tail_scan > 0``."""
         return self._tail_samples()[1] > 0 and self.cfg.residual_tail_scan > 0
 
-    def _snapped_slots(self, sdf, slots: list[Slot]) -> list[list[list[mi.Float]]]:
+    def _snapped_slots(self, sdf, slots: list[Slot], kinks: list[list[mi.Float]]) -> list[list[list[mi.Float]]]:
         """Moved positions of every slot's samples in the order :meth:`_sub_bands` reads them: the first
         tail's ``kp`` in ``(hi, extra)``, the second tail's ``kq`` in ``(extra, tail end]``, the
         band's first half's ``K/2 - 1`` in ``(lo, mid)`` (its last sample, the centre, stays)
         and its second half's ``K/2`` in ``(mid, hi]``; per part a list (slot) of lists
-        (sample) of arrays (ray)."""
+        (sample) of arrays (ray). ``kinks``: per slot the kinks of its box's ``B`` along the ray
+        (:func:`~vsrd_plugins.sdf.box_ray_kinks`)."""
         kp, kq = self._tail_samples()
         k1, k2 = self._halves(self.cfg.band_samples)
         lo, mid, hi, extra, tail = ([getattr(sl, name) for sl in slots]
                                     for name in ("lo", "mid", "hi", "extra", "tail_end"))
         empty = [[] for _ in slots]
-        kink = self._kink_minima(sdf, [sl.kink for sl in slots])
-        return [self._snapped_positions(sdf, hi, extra, kp + 1, kp, kink=kink) if kp else empty,
-                self._snapped_positions(sdf, extra, tail, kq, kq, kink=kink),
-                self._snapped_positions(sdf, lo, mid, k1, k1 - 1, True, kink=kink) if k1 > 1 else empty,
-                self._snapped_positions(sdf, mid, hi, k2, k2, kink=kink) if k2 else empty]
+        minima = self._kink_minima(sdf, kinks)
+        return [self._snapped_positions(sdf, hi, extra, kp + 1, kp, kinks=minima) if kp else empty,
+                self._snapped_positions(sdf, extra, tail, kq, kq, kinks=minima),
+                self._snapped_positions(sdf, lo, mid, k1, k1 - 1, True, kinks=minima) if k1 > 1 else empty,
+                self._snapped_positions(sdf, mid, hi, k2, k2, kinks=minima) if k2 else empty]
 
     @staticmethod
-    def _kink_minima(sdf, kinks: list[mi.Float]) -> mi.Float:
-        """Per (slot, ray) pair, slot-major: the kink of ``B`` (``kinks``, per slot; ``-1``:
-        none) where ``F = B + R`` has a local minimum (``F`` there below ``F`` at
-        :data:`KINK_PROBE` on either side), else ``-1``. Inside a box ``B`` along a ray is the
-        max of its face distances: convex and piecewise linear, with its least value at a kink;
-        ``R`` can make that kink a local minimum of ``F`` away from ``F``'s least value, and a
-        parabola through scan points on either side of a kink misses it by up to a cell."""
-        t = concat(kinks)
-        f = sdf.full(t)
-        is_min = (t >= 0.0) & (f < sdf.full(t - KINK_PROBE)) & (f < sdf.full(t + KINK_PROBE))
-        out = dr.select(is_min, t, -1.0)
+    def _kink_minima(sdf, kinks: list[list[mi.Float]]) -> list[mi.Float]:
+        """Per (slot, ray) pair, slot-major: the kinks of ``B`` (``kinks``: per slot, ascending,
+        ``-1`` for none) where ``F = B + R`` has a local minimum (``F`` there below ``F`` at
+        :data:`KINK_PROBE` on either side), ascending, at most :data:`KINK_MINIMA` of them,
+        ``-1`` past the last. Inside a box ``B`` along a ray is the max of its face planes:
+        convex and piecewise linear, with a kink wherever the nearest face changes; ``R`` can
+        make any kink a local minimum of ``F`` (the deepest point, or a face handing over to
+        the exit face while the residual still falls), and a parabola through scan points on
+        either side of a kink misses it by up to a cell."""
+        ts = [concat([per_slot[c] for per_slot in kinks]) for c in range(len(kinks[0]))]
+        # F at every kink and its two probes in one batch: pair-major blocks of the valid pairs
+        block, pair = sdf.block_pairs(3 * len(ts))
+        t_at = dr.gather(mi.Float, ts[0], pair)
+        for c in range(1, len(ts)):
+            t_at = dr.select(block // 3 == c, dr.gather(mi.Float, ts[c], pair), t_at)
+        values = sdf(t_at + dr.select(block % 3 == 0, 0.0, dr.select(block % 3 == 1, -KINK_PROBE, KINK_PROBE)),
+                     3 * len(ts))
+        out = [mi.Float(-1.0) for _ in range(KINK_MINIMA)]
+        filled = mi.UInt32(0)
+        for c, t in enumerate(ts):
+            f, f_lo, f_hi = (sdf.spread(values, 3 * c + i) for i in range(3))
+            is_min = (t >= 0.0) & (f < f_lo) & (f < f_hi)
+            for i in range(KINK_MINIMA):  # the minima in order, compacted to the front
+                out[i] = dr.select(is_min & (filled == i), t, out[i])
+            filled += dr.select(is_min, 1, 0)
         dr.eval(out)
         return out
-
 
     @staticmethod
     def _pair_views(slot_views) -> tuple:
@@ -1545,7 +1610,7 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         return out
 
     def _snapped_positions(self, sdf, starts: list[mi.Float], ends: list[mi.Float], k_sub: int, k: int,
-                           dense_at_b: bool = False, kink: mi.Float | None = None) -> list[list[mi.Float]]:
+                           dense_at_b: bool = False, kinks: list[mi.Float] = ()) -> list[list[mi.Float]]:
         """Per slot the positions of the first ``k`` samples of the sub-band ``(starts[b],
         ends[b]]`` of ``k_sub`` samples (:meth:`_sub_sample`), moved to the local extrema of
         ``F = B + R`` (detached; ``sdf``: the :class:`PairScan` of the pairs).
@@ -1560,9 +1625,10 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         position) are scanned, over the cells of the ``k`` moved samples and, where ``k <
         k_sub``, the fixed next sample's. Every scan point that is a local extremum of the scan
         (by more than :data:`SNAP_PROMINENCE`) places a sample at the vertex of the parabola
-        through it and its two neighbours; ``kink`` (per pair, :meth:`_kink_minima`), a kink of
-        ``B`` where ``F`` has a local minimum, places one exactly (a parabola across a kink
-        misses it by up to a cell) and replaces the scan extremum whose bracket holds it.
+        through it and its two neighbours; ``kinks`` (per pair, ascending, :meth:`_kink_minima`),
+        the kinks of ``B`` where ``F`` has a local minimum, place one each exactly (a parabola
+        across a kink misses it by up to a cell) and replace the scan extrema whose brackets
+        hold them.
         Taken in order along the ray, the ``j``-th of the ``q`` extrema takes the first sample
         after the last one taken: its own cell's, or an earlier one where its own would leave
         fewer than ``q - j`` samples for the extrema after it, or a later one where its own is
@@ -1606,21 +1672,26 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         # _kink_minima; exact, where the scan's parabolas on either side of it would miss it),
         # in order along the ray: the j-th of q takes the first sample after the last one taken,
         # at its own cell's unless that would leave too few samples for the q - j after it
-        kt = kink if kink is not None else mi.Float(-1.0)
-        pending = (kt > a) & (kt < nominal[cells])
-        kcell = mi.UInt32(1)
-        for i in range(1, cells):
-            kcell += dr.select(nominal[i] < kt, 1, 0)
-        kcell = dr.minimum(kcell, k)  # the fixed sample's cell claims the last moved one
+        # a kink on the fixed samples around the cells (the deepest point, a band's centre) has one
+        pending = [(kt > a + KINK_PROBE) & (kt < nominal[cells] - KINK_PROBE) for kt in kinks]
+        kcells = []
+        for kt in kinks:
+            kcell = mi.UInt32(1)
+            for i in range(1, cells):
+                kcell += dr.select(nominal[i] < kt, 1, 0)
+            kcells.append(dr.minimum(kcell, k))  # the fixed sample's cell claims the last moved one
         events = []
-        q = dr.select(pending, 1, 0)
+        q = mi.UInt32(0)
+        for pend in pending:
+            q += dr.select(pend, 1, 0)
         for m in range(1, len(ts) - 1):
             x0, x1, x2 = ts[m - 1], ts[m], ts[m + 1]
             f0, f1, f2 = v[m - 1], v[m], v[m + 1]
             extremum = ((f1 > f0) & (f1 >= f2)) | ((f1 < f0) & (f1 <= f2))
             extremum &= dr.maximum(dr.abs(f1 - f0), dr.abs(f1 - f2)) > SNAP_PROMINENCE
-            # the kink's own bracket: the scan's smoothed view of the same minimum
-            extremum &= ~(pending & (x0 < kt) & (kt < x2))
+            # a kink's own bracket: the scan's smoothed view of the same minimum
+            for pend, kt in zip(pending, kinks):
+                extremum &= ~(pend & (x0 < kt) & (kt < x2))
             # vertex of the parabola through the three points
             d0, d2 = x1 - x0, x1 - x2
             num = d0 * d0 * (f1 - f2) - d2 * d2 * (f1 - f0)
@@ -1644,11 +1715,13 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
             last = dr.select(take, slot, last)
 
         for x1, extremum, vertex, cell in events:
-            due = pending & (kt <= x1)
-            place(due, kt, kcell)
-            pending &= ~due
+            for c, (kt, kcell) in enumerate(zip(kinks, kcells)):
+                due = pending[c] & (kt <= x1)
+                place(due, kt, kcell)
+                pending[c] = pending[c] & ~due
             place(extremum, vertex, mi.UInt32(cell))
-        place(pending, kt, kcell)
+        for pend, kt, kcell in zip(pending, kinks, kcells):
+            place(pend, kt, kcell)
         # the samples no extremum took keep their nominal places, clipped between the taken
         # ones around them: the samples stay sorted
         low = mi.Float(-dr.inf)

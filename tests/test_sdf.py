@@ -9,8 +9,9 @@ import vsrd_mi  # noqa: F401  (selects the Mitsuba variant, registers the plugin
 import drjit as dr
 import mitsuba as mi
 
-from vsrd_plugins.sdf import (BoxRanges, InstanceField, ResidualConfig, box_sdf_local, box_sdf_local_grad,
-                              box_sdf_ray_local, instance_properties, sigmoid, softplus)
+from vsrd_plugins.sdf import (BoxRanges, InstanceField, ResidualConfig, box_ray_kinks, box_sdf_local,
+                              box_sdf_local_grad, box_sdf_ray_local, instance_properties, ray_box_interval,
+                              sigmoid, softplus)
 
 
 def np_box_sdf(p: np.ndarray, half: np.ndarray) -> np.ndarray:
@@ -124,6 +125,41 @@ def test_box_sdf_ray_gradient_is_the_envelope_gradient():
         worst_plain = max(worst_plain, np.abs(grads["plain"] - fd).max())
     assert worst_env < 1e-2, worst_env
     assert worst_plain > 0.2  # the check can fail: the one-sided gradient is far off somewhere
+
+
+def test_box_ray_kinks_are_the_slope_changes():
+    """``box_ray_kinks`` lists, ascending, every point inside the box where the box SDF's slope
+    along the ray changes, checked on a dense NumPy sampling of the SDF (random rays through
+    random boxes, a third of them parallel to a face, where ``B`` is flat along it)."""
+    rng = np.random.default_rng(21)
+    n = 300
+    d = rng.normal(size=(n, 3))
+    d[: n // 3, 1] = 0.0
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    o = rng.normal(0.0, 0.8, (n, 3)) - 8.0 * d
+    half = rng.uniform(0.3, 2.5, (n, 3))
+    ov, dv, hv = vec(o), vec(d), vec(half)
+    t0, t1 = ray_box_interval(ov, dv, hv)
+    kinks = np.stack([np.array(k) for k in box_ray_kinks(ov, dv, hv, t0, t1)], axis=1)
+    t0, t1 = np.array(t0), np.array(t1)
+    checked = 0
+    for i in np.where(t1 - t0 > 0.05)[0]:
+        ts = np.linspace(t0[i], t1[i], 40001)
+        b = np_box_sdf(o[i] + ts[:, None] * d[i], half[i])
+        slope = np.diff(b) / np.diff(ts)
+        h = ts[1] - ts[0]
+        # slope changes: adjacent differences that differ by more than float32 noise, merged
+        jump = ts[1:-1][np.abs(np.diff(slope)) > 1e-2]
+        found = [x for j, x in enumerate(jump) if j == 0 or x - jump[j - 1] > 3 * h]
+        # a kink closer than the sampling to the chord's ends shows as no slope change
+        found = [x for x in found if min(x - t0[i], t1[i] - x) > 3 * h]
+        k = kinks[i][kinks[i] >= 0.0]
+        k = k[np.minimum(k - t0[i], t1[i] - k) > 3 * h]
+        assert np.all(np.diff(kinks[i][kinks[i] >= 0.0]) >= 0.0), kinks[i]
+        assert len(k) == len(found), (i, k, found)
+        np.testing.assert_allclose(k, found, atol=3 * h + 1e-4)
+        checked += 1
+    assert checked > 100
 
 
 def test_box_sdf_ray_equals_plain_off_ridges():

@@ -17,7 +17,7 @@ import drjit as dr
 import mitsuba as mi
 
 from vsrd_plugins.sdf import instance_properties
-from vsrd_plugins.silhouette import PairScan, VSRDSilhouetteIntegrator
+from vsrd_plugins.silhouette import KINK_MINIMA, GapPeak, PairScan, VSRDSilhouetteIntegrator
 from vsrd_mi.bench.integrator import BenchConfig, central_differences, fd_steps, new_kernels, reference_grid
 
 BOX_KEYS = ("box_dims", "box_centre", "box_yaw", "box_velocity")
@@ -880,10 +880,10 @@ def sine_cell_scan(cell: int, amp: float, slope: float, kink_between: tuple[int,
     def at(pair, t):
         return mi.Float(f(np.array(t, dtype=np.float64)).astype(np.float32))
 
-    def moved(kinks=None):
+    def moved(kinks=()):
         with dr.suspend_grad():
             sdf = PairScan.of(mi.Bool([True, True]), at)
-            out = it._snapped_positions(sdf, [mi.Float([a, a])], [mi.Float([b, b])], k, k, kink=kinks)[0]
+            out = it._snapped_positions(sdf, [mi.Float([a, a])], [mi.Float([b, b])], k, k, kinks=list(kinks))[0]
         return np.array([np.array(p)[0] for p in out])
 
     # F's slope across the sine cell (after the kink where there is one)
@@ -912,12 +912,58 @@ def test_moved_samples_take_crowded_extrema_and_kinks():
     (:meth:`_snapped_positions`). With the kink left out, the scan's parabola across it misses
     it by more."""
     moved, extrema, w, kink = sine_cell_scan(6, 0.3, 0.3, kink_between=(1, 2))
-    pos = moved(mi.Float([kink, kink]))
+    pos = moved([mi.Float([kink, kink])])
     assert np.all(np.diff(pos) >= 0.0), pos
     for x in extrema:
         assert np.min(np.abs(pos - x)) <= 0.1 * w, (x, pos)
     assert np.min(np.abs(pos - kink)) <= 1e-5, (kink, pos)
-    assert np.min(np.abs(moved(None) - kink)) > 1e-3
+    assert np.min(np.abs(moved() - kink)) > 1e-3
+
+
+def test_kink_minima_keep_the_kinks_where_the_sdf_has_a_local_minimum():
+    """Of a pair's kinks of ``B`` (ascending), the ones where ``F`` is below its values on either
+    side are kept, in order and compacted to the front: ``F`` falls to a kink at 2, rises with
+    a steeper slope after a kink at 3.5, falls again to a kink at 5 and rises; a second pair
+    has the same ``F`` shifted by 1, and no kinks on its third slot."""
+    def f(t):
+        return np.where(t < 2.0, 2.0 - t, np.where(t < 3.5, 0.2 * (t - 2.0), np.where(
+            t < 4.0, 0.3 + 0.9 * (t - 3.5), np.maximum(0.75 - 0.6 * (t - 4.0), 0.15 + 0.4 * (t - 5.0)))))
+
+    def at(pair, t):
+        shift = np.where(np.array(pair) == 1, 1.0, 0.0)
+        return mi.Float(f(np.array(t, dtype=np.float64) - shift).astype(np.float32))
+
+    with dr.suspend_grad():
+        sdf = PairScan.of(mi.Bool([True, True]), at)
+        kinks = [[mi.Float([2.0, 3.0]), mi.Float([3.5, 4.5]), mi.Float([5.0, 6.0]), mi.Float([-1.0, -1.0])]]
+        out = VSRDSilhouetteIntegrator._kink_minima(sdf, kinks)
+    assert len(out) == KINK_MINIMA == 2
+    np.testing.assert_allclose(np.stack([np.array(x) for x in out]), [[2.0, 3.0], [5.0, 6.0]])
+
+
+def test_residual_peaks_move_to_the_instance_sdfs_crossing():
+    """With the residual, a gap peak found on the boxes moves to where the two slots' instance
+    SDFs cross (the scene SDF's maximum between them), with the envelope weight of their
+    slopes there; a gap whose SDFs do not cross keeps the box peak."""
+    # two rays, two slots: F_a = 0.5 (t - 1) rising, F_b = 2 - t (ray 0), 4 - t (ray 1) falling
+    def at(pair, t):
+        p, t = np.array(pair), np.array(t, dtype=np.float64)
+        ray, slot = p % 2, p // 2
+        fb = np.where(ray == 0, 2.0, 4.0) - t
+        return mi.Float(np.where(slot == 0, 0.5 * (t - 1.0), fb).astype(np.float32))
+
+    with dr.suspend_grad():
+        sdf = PairScan.of(mi.Bool([True] * 4), at)
+        peak = GapPeak(mi.Float([1.2, 2.0]), mi.Bool([True, True]), mi.Float([-1.0, -1.0]),
+                       mi.Float([0.0, 0.0]), mi.Float([1.0, 1.0]))
+        none = GapPeak(mi.Float(0.0), mi.Bool(False), mi.Float(-1.0), mi.Float(0.0), mi.Float(0.0))
+        # ray 1: deepest points 0 and 2, where F_a - F_b stays negative: no crossing in the gap
+        ts = [mi.Float([0.5, 0.0]), mi.Float([3.0, 2.0])]
+        out = VSRDSilhouetteIntegrator._residual_peaks(sdf, [peak, none], ts)[0]
+    t, lam = np.array(out.t), np.array(out.lam)
+    assert abs(t[0] - 5.0 / 3.0) <= 1e-4, t  # 0.5 (t - 1) = 2 - t
+    assert abs(lam[0] - 1.0 / 1.5) <= 1e-3, lam  # -g_b / (g_a - g_b) = 1 / 1.5
+    assert t[1] == np.float32(2.0) and lam[1] == -1.0, (t, lam)
 
 
 def test_residual_grid_keeps_the_sparse_gradient():
