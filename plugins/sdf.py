@@ -349,6 +349,31 @@ def box_ray_kinks(o: mi.Vector3f, d: mi.Vector3f, half: mi.Vector3f, t0: mi.Floa
         return out
 
 
+def box_ray_bends(o: mi.Vector3f, d: mi.Vector3f, half: mi.Vector3f, t0: mi.Float,
+                  t1: mi.Float) -> tuple[list[mi.Float], list[mi.Float]]:
+    """Where the box-local ray ``o + t d`` crosses the plane of a face outside the box within
+    ``(t0, t1)``, and :func:`box_sdf_local` there (detached): six ``(t, B)``, ``t = -1`` for
+    none.
+
+    Outside the box ``B`` is the distance to its nearest point, smooth (C1) but bending where
+    that point moves from a face onto an edge, or from an edge onto a corner: where the ray
+    crosses the plane of a face beside it. Along the ray the bend is about as wide as ``B``
+    there, and its slope turns by up to the ray's direction cosine with that face's normal: a
+    ray passing close to an edge sees a near-kink."""
+    with dr.suspend_grad():
+        o, d, half, t0, t1 = (dr.detach(x) for x in (o, d, half, t0, t1))
+        ts, bs = [], []
+        for i in range(3):
+            moving = d[i] != 0.0
+            inv = dr.select(moving, dr.rcp(dr.select(moving, d[i], 1.0)), 0.0)
+            for side in (1.0, -1.0):
+                t = (side * half[i] - o[i]) * inv
+                b = box_sdf_local(o + t * d, half)
+                ts.append(dr.select(moving & (t > t0) & (t < t1) & (b > 0.0), t, -1.0))
+                bs.append(b)
+        return ts, bs
+
+
 def ridge_faces(p: mi.Vector3f, d: mi.Vector3f, half: mi.Vector3f,
                 tol: float | mi.Float = RIDGE_TOLERANCE) -> tuple[mi.Bool, mi.UInt32, mi.UInt32, mi.Float]:
     """The ridge of :func:`box_sdf_ray_local` at ``p`` (detached): whether the faces within

@@ -182,7 +182,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from .sdf import (LATTICE_LOOKUP_COST, RIDGE_TOLERANCE, InstanceField, ResidualLattice, box_normal_local, box_ray_kinks, box_sdf_local, concat, envelope_blend,
+from .sdf import (LATTICE_LOOKUP_COST, RIDGE_TOLERANCE, InstanceField, ResidualLattice, box_normal_local, box_ray_bends, box_ray_kinks, box_sdf_local, concat, envelope_blend,
                   envelope_weight, ray_box_interval, scene_sdf, softmin_labels, softplus)
 
 GOLDEN = 0.6180339887498949
@@ -214,6 +214,10 @@ MONOTONE_TOLERANCE = 1e-5
 SNAP_PROMINENCE = 2e-4
 #: Probe distance (m) on either side of a kink of ``B`` (:meth:`VSRDSilhouetteIntegrator._kink_minima`).
 KINK_PROBE = 1e-3
+#: Golden-section steps that find the minimum of ``B + R`` beside a bend of ``B`` (or beside a
+#: kink, off it) between two of its probes (:meth:`VSRDSilhouetteIntegrator._kink_minima`):
+#: the bracket shrinks 320x, to well under a millimetre for the widest bends.
+KINK_GOLDEN = 12
 #: Bisection steps that move a gap peak to the crossing of two instance SDFs ``B + R``
 #: (:meth:`VSRDSilhouetteIntegrator._residual_peaks`): a gap of 10 m to 10 um.
 PEAK_BISECTIONS = 20
@@ -525,6 +529,20 @@ def pick(values: list[mi.Float], i: mi.UInt32) -> mi.Float:
     for idx, v in enumerate(values[1:], start=2):
         out = dr.select(i == idx, v, out)
     return out
+
+
+def compress_wide(mask: mi.Bool) -> tuple[mi.UInt32, mi.Bool]:
+    """``dr.compress(mask)`` padded to at least two lanes (copies of the first index, or index
+    0 where ``mask`` holds nowhere), and which lanes are real. Arrays of width 1 read as
+    scalars, whose values Dr.Jit bakes into kernels as literals (each new value compiled them
+    anew), and a pass that runs only where some lane needs it compiles its kernels at the
+    first such call, deep into an optimisation: padded, it runs every call."""
+    idx = dr.compress(mask)
+    n = dr.width(idx)
+    if n < 2:  # evaluated either way, and the count opaque: the same kernels for any count
+        idx = dr.gather(mi.UInt32, idx, dr.zeros(mi.UInt32, 2)) if n else dr.zeros(mi.UInt32, 2)
+        dr.make_opaque(idx)
+    return idx, dr.arange(mi.UInt32, dr.width(idx)) < dr.opaque(mi.UInt32, n)
 
 
 def count_prefix(n: int, value, before) -> mi.UInt32:
@@ -1269,8 +1287,10 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
                 kinks = [box_ray_kinks(*sv, dr.select(pk.valid & pk.hit, pk.centre, 0.0),
                                        dr.select(pk.valid & pk.hit, pk.surface_exit, -1.0))
                          for sv, pk in zip(slot_views, picked)]
+                bends = [box_ray_bends(*sv, dr.select(pk.valid, pk.entry, 0.0), dr.select(pk.valid, pk.exit, -1.0))
+                         for sv, pk in zip(slot_views, picked)]
                 slots = [replace(sl, moved=tuple(x for part in parts for x in part)) for sl, parts in
-                         zip(slots, zip(*self._snapped_slots(sdf, slots, kinks)))]
+                         zip(slots, zip(*self._snapped_slots(sdf, slots, kinks, bends)))]
             isolated = self._isolated(picked, count)
             dr.eval(count, slots, slot_inst, slot_hit, isolated)
         return ray_idx, count, slots, slot_inst, slot_hit, isolated, grid
@@ -1451,50 +1471,105 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         (:meth:`_snapped_positions`): the tail samples are on and ``residual_tail_scan > 0``."""
         return self._tail_samples()[1] > 0 and self.cfg.residual_tail_scan > 0
 
-    def _snapped_slots(self, sdf, slots: list[Slot], kinks: list[list[mi.Float]]) -> list[list[list[mi.Float]]]:
+    def _snapped_slots(self, sdf, slots: list[Slot], kinks: list[list[mi.Float]],
+                       bends: list[tuple]) -> list[list[list[mi.Float]]]:
         """Moved positions of every slot's samples in the order :meth:`_sub_bands` reads them: the first
         tail's ``kp`` in ``(hi, extra)``, the second tail's ``kq`` in ``(extra, tail end]``, the
         band's first half's ``K/2 - 1`` in ``(lo, mid)`` (its last sample, the centre, stays)
         and its second half's ``K/2`` in ``(mid, hi]``; per part a list (slot) of lists
-        (sample) of arrays (ray). ``kinks``: per slot the kinks of its box's ``B`` along the ray
-        (:func:`~vsrd_plugins.sdf.box_ray_kinks`)."""
+        (sample) of arrays (ray). ``kinks``, ``bends``: per slot the kinks and bends of its box's
+        ``B`` along the ray (:meth:`_kink_minima`)."""
         kp, kq = self._tail_samples()
         k1, k2 = self._halves(self.cfg.band_samples)
         lo, mid, hi, extra, tail = ([getattr(sl, name) for sl in slots]
                                     for name in ("lo", "mid", "hi", "extra", "tail_end"))
         empty = [[] for _ in slots]
-        minima = self._kink_minima(sdf, kinks)
+        minima = self._kink_minima(sdf, kinks, bends, 1.0 / self._residual_omega())
         return [self._snapped_positions(sdf, hi, extra, kp + 1, kp, kinks=minima) if kp else empty,
                 self._snapped_positions(sdf, extra, tail, kq, kq, kinks=minima),
                 self._snapped_positions(sdf, lo, mid, k1, k1 - 1, True, kinks=minima) if k1 > 1 else empty,
                 self._snapped_positions(sdf, mid, hi, k2, k2, kinks=minima) if k2 else empty]
 
     @staticmethod
-    def _kink_minima(sdf, kinks: list[list[mi.Float]]) -> list[mi.Float]:
-        """Per (slot, ray) pair, slot-major: the kinks of ``B`` (``kinks``: per slot, ascending,
-        ``-1`` for none) where ``F = B + R`` has a local minimum (``F`` there below ``F`` at
-        :data:`KINK_PROBE` on either side), ascending, at most :data:`KINK_MINIMA` of them,
-        ``-1`` past the last. Inside a box ``B`` along a ray is the max of its face planes:
-        convex and piecewise linear, with a kink wherever the nearest face changes; ``R`` can
-        make any kink a local minimum of ``F`` (the deepest point, or a face handing over to
-        the exit face while the residual still falls), and a parabola through scan points on
-        either side of a kink misses it by up to a cell."""
+    def _kink_minima(sdf, kinks: list[list[mi.Float]], bends: list[tuple] = (),
+                     sharpest: float = 0.0) -> list[mi.Float]:
+        """Per (slot, ray) pair, slot-major: where ``F = B + R`` has a local minimum at a kink of
+        ``B`` or beside a sharp bend of it, ascending, at most :data:`KINK_MINIMA` of them,
+        ``-1`` past the last.
+
+        ``kinks`` (per slot, ascending, ``-1`` for none; :func:`~vsrd_plugins.sdf.box_ray_kinks`):
+        inside a box ``B`` along a ray is the max of its face planes, convex and piecewise
+        linear, with a kink wherever the nearest face changes; ``R`` can make any kink a local
+        minimum of ``F`` (the deepest point, or a face handing over to the exit face while the
+        residual still falls). ``bends`` (per slot the crossings and ``B`` there of
+        :func:`~vsrd_plugins.sdf.box_ray_bends`): outside, a ray passing an edge within
+        ``sharpest`` (the residual's own length scale) bends ``B`` as sharply as a kink over
+        about ``B``'s width. A parabola through scan points on either side misses either by up
+        to a cell. Each candidate is probed at five points ``KINK_PROBE`` apart (a bend: half
+        its width, at least that) and is a minimum where the least probe is an inner one: a
+        kink whose own value is least keeps its exact place, otherwise :data:`KINK_GOLDEN`
+        golden-section steps between the least probe's neighbours find it (a parabola through
+        the probes put the minimum beside a wide bend 2 cm off, beside the band's own sample
+        at the closest approach, where it took a second sample for the same minimum)."""
         ts = [concat([per_slot[c] for per_slot in kinks]) for c in range(len(kinks[0]))]
-        # F at every kink and its two probes in one batch: pair-major blocks of the valid pairs
-        block, pair = sdf.block_pairs(3 * len(ts))
-        t_at = dr.gather(mi.Float, ts[0], pair)
-        for c in range(1, len(ts)):
-            t_at = dr.select(block // 3 == c, dr.gather(mi.Float, ts[c], pair), t_at)
-        values = sdf(t_at + dr.select(block % 3 == 0, 0.0, dr.select(block % 3 == 1, -KINK_PROBE, KINK_PROBE)),
-                     3 * len(ts))
-        out = [mi.Float(-1.0) for _ in range(KINK_MINIMA)]
-        filled = mi.UInt32(0)
-        for c, t in enumerate(ts):
-            f, f_lo, f_hi = (sdf.spread(values, 3 * c + i) for i in range(3))
-            is_min = (t >= 0.0) & (f < f_lo) & (f < f_hi)
-            for i in range(KINK_MINIMA):  # the minima in order, compacted to the front
-                out[i] = dr.select(is_min & (filled == i), t, out[i])
-            filled += dr.select(is_min, 1, 0)
+        widths = [dr.full(mi.Float, KINK_PROBE, dr.width(ts[0]))] * len(ts)
+        exact = len(ts)
+        for c in range(len(bends[0][0]) if bends else 0):
+            b = concat([bend[1][c] for bend in bends])
+            ts.append(dr.select(b < sharpest, concat([bend[0][c] for bend in bends]), -1.0))
+            widths.append(dr.maximum(0.5 * b, KINK_PROBE))
+        n_pairs = dr.width(ts[0])
+        cand_t, cand_w = concat(ts), concat(widths)
+        # the candidates, (candidate, pair) flat; padded lanes probe candidate 0 and write nothing
+        live, real = compress_wide(cand_t >= 0.0)
+        n_live = dr.width(live)
+        found = dr.full(mi.Float, -1.0, dr.width(cand_t))
+        t_c, w_c = dr.gather(mi.Float, cand_t, live), dr.gather(mi.Float, cand_w, live)
+        pair = live % dr.opaque(mi.UInt32, n_pairs)
+        lane = dr.arange(mi.UInt32, 5 * n_live)
+        c, j = lane // 5, lane % 5
+        f = sdf.at(dr.gather(mi.UInt32, pair, c),
+                   dr.fma(dr.gather(mi.Float, w_c, c), mi.Float(j) - 2.0, dr.gather(mi.Float, t_c, c)))
+        dr.eval(f)
+        probes = [dr.gather(mi.Float, f, dr.arange(mi.UInt32, n_live) * 5 + j) for j in range(5)]
+        best, arg = probes[0], mi.UInt32(0)
+        for j in range(1, 5):
+            better = probes[j] < best
+            best, arg = dr.select(better, probes[j], best), dr.select(better, j, arg)
+        inner = (arg >= 1) & (arg <= 3)
+        f0 = pick(probes, dr.select(inner, arg, 1))  # pick is 1-based: probes arg - 1, arg, arg + 1
+        f1 = pick(probes, arg + 1)
+        f2 = pick(probes, dr.select(inner, arg + 2, 1))
+        is_min = real & inner & (f1 < f0) & (f1 < f2)
+        at_kink = (live < dr.opaque(mi.UInt32, exact * n_pairs)) & (arg == 2)
+        dr.scatter(found, t_c, live, is_min)
+        # elsewhere the minimum lies between the least probe's neighbours: golden section
+        smooth, real = compress_wide(is_min & ~at_kink)
+        tc, wc = dr.gather(mi.Float, t_c, smooth), dr.gather(mi.Float, w_c, smooth)
+        ac = mi.Float(dr.gather(mi.UInt32, arg, smooth))
+        pc = dr.gather(mi.UInt32, pair, smooth)
+
+        def fc(t):
+            out = sdf.at(pc, t)
+            dr.eval(out)
+            return out
+
+        lo, hi = dr.fma(wc, ac - 3.0, tc), dr.fma(wc, ac - 1.0, tc)
+        x1, x2 = golden_probes(lo, hi)
+        state = (lo, hi, x1, x2, fc(x1), fc(x2))
+        for _ in range(KINK_GOLDEN):  # unrolled: sdf may run the residual MLP
+            state = golden_step(state, fc)
+            dr.eval(state)  # the same kernel every step
+        dr.scatter(found, golden_argmin(state), dr.gather(mi.UInt32, live, smooth), real)
+        cands = [dr.gather(mi.Float, found, dr.arange(mi.UInt32, n_pairs) + dr.opaque(mi.UInt32, c * n_pairs))
+                 for c in range(len(ts))]
+        out, low = [], mi.Float(-1.0)
+        for _ in range(KINK_MINIMA):  # the least minima in order
+            nxt = mi.Float(dr.inf)
+            for t in cands:
+                nxt = dr.select((t > low) & (t < nxt), t, nxt)
+            low = dr.select(dr.isfinite(nxt), nxt, low)
+            out.append(dr.select(dr.isfinite(nxt), nxt, -1.0))
         dr.eval(out)
         return out
 

@@ -941,6 +941,28 @@ def test_kink_minima_keep_the_kinks_where_the_sdf_has_a_local_minimum():
     np.testing.assert_allclose(np.stack([np.array(x) for x in out]), [[2.0, 3.0], [5.0, 6.0]])
 
 
+def test_kink_minima_find_the_minimum_beside_a_sharp_bend():
+    """Beside a bend of ``B`` (a ray passing an edge 2 cm away: ``F = sqrt(0.02^2 + (t - 3)^2)
+    - 0.3 (t - 3)``, smooth, its minimum 6.3 mm past the bend) the minimum is found to a tenth
+    of a millimetre (a parabola through the probes: 0.5 mm off); a bend wider than ``sharpest``
+    is left to the scan."""
+    rho, g = 0.02, 0.3
+    t_min = 3.0 + g * rho / np.sqrt(1.0 - g * g)
+
+    def at(pair, t):
+        t = np.array(t, dtype=np.float64)
+        return mi.Float((np.sqrt(rho * rho + (t - 3.0) ** 2) - g * (t - 3.0)).astype(np.float32))
+
+    with dr.suspend_grad():
+        sdf = PairScan.of(mi.Bool([True, True]), at)
+        none = mi.Float([-1.0, -1.0])
+        bends = [([mi.Float([3.0, 3.0])] + [none] * 5, [mi.Float([rho, 0.3])] + [mi.Float([1.0, 1.0])] * 5)]
+        out = VSRDSilhouetteIntegrator._kink_minima(sdf, [[none]], bends, 0.25)
+    first = np.array(out[0])
+    assert abs(first[0] - t_min) <= 1e-4, (first, t_min)
+    assert first[1] == -1.0 and np.all(np.array(out[1]) == -1.0), out
+
+
 def test_residual_peaks_move_to_the_instance_sdfs_crossing():
     """With the residual, a gap peak found on the boxes moves to where the two slots' instance
     SDFs cross (the scene SDF's maximum between them), with the envelope weight of their
