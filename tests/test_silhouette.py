@@ -935,7 +935,7 @@ def test_kink_minima_keep_the_kinks_where_the_sdf_has_a_local_minimum():
 
     with dr.suspend_grad():
         sdf = PairScan.of(mi.Bool([True, True]), at)
-        kinks = [[mi.Float([2.0, 3.0]), mi.Float([3.5, 4.5]), mi.Float([5.0, 6.0]), mi.Float([-1.0, -1.0])]]
+        kinks = [mi.Float([2.0, 3.0]), mi.Float([3.5, 4.5]), mi.Float([5.0, 6.0]), mi.Float([-1.0, -1.0])]
         out = VSRDSilhouetteIntegrator._kink_minima(sdf, kinks)
     assert len(out) == KINK_MINIMA == 2
     np.testing.assert_allclose(np.stack([np.array(x) for x in out]), [[2.0, 3.0], [5.0, 6.0]])
@@ -956,8 +956,8 @@ def test_kink_minima_find_the_minimum_beside_a_sharp_bend():
     with dr.suspend_grad():
         sdf = PairScan.of(mi.Bool([True, True]), at)
         none = mi.Float([-1.0, -1.0])
-        bends = [([mi.Float([3.0, 3.0])] + [none] * 5, [mi.Float([rho, 0.3])] + [mi.Float([1.0, 1.0])] * 5)]
-        out = VSRDSilhouetteIntegrator._kink_minima(sdf, [[none]], bends, 0.25)
+        bends = ([mi.Float([3.0, 3.0])] + [none] * 5, [mi.Float([rho, 0.3])] + [mi.Float([1.0, 1.0])] * 5)
+        out = VSRDSilhouetteIntegrator._kink_minima(sdf, [none], bends, 0.25)
     first = np.array(out[0])
     assert abs(first[0] - t_min) <= 1e-4, (first, t_min)
     assert first[1] == -1.0 and np.all(np.array(out[1]) == -1.0), out
@@ -966,7 +966,8 @@ def test_kink_minima_find_the_minimum_beside_a_sharp_bend():
 def test_residual_peaks_move_to_the_instance_sdfs_crossing():
     """With the residual, a gap peak found on the boxes moves to where the two slots' instance
     SDFs cross (the scene SDF's maximum between them), with the envelope weight of their
-    slopes there; a gap whose SDFs do not cross keeps the box peak."""
+    slopes there; a gap whose SDFs do not cross keeps the box peak, and so does one whose box
+    peak lies beyond the residual's reach (there the instance SDFs are the boxes')."""
     # two rays, two slots: F_a = 0.5 (t - 1) rising, F_b = 2 - t (ray 0), 4 - t (ray 1) falling
     def at(pair, t):
         p, t = np.array(pair), np.array(t, dtype=np.float64)
@@ -977,11 +978,14 @@ def test_residual_peaks_move_to_the_instance_sdfs_crossing():
     with dr.suspend_grad():
         sdf = PairScan.of(mi.Bool([True] * 4), at)
         peak = GapPeak(mi.Float([1.2, 2.0]), mi.Bool([True, True]), mi.Float([-1.0, -1.0]),
-                       mi.Float([0.0, 0.0]), mi.Float([1.0, 1.0]))
-        none = GapPeak(mi.Float(0.0), mi.Bool(False), mi.Float(-1.0), mi.Float(0.0), mi.Float(0.0))
+                       mi.Float([0.0, 0.0]), mi.Float([1.0, 1.0]), mi.Float([0.1, 0.1]))
+        far = peak._replace(f=mi.Float([0.6, 0.6]))  # beyond the reach: the box peak stays
+        none = GapPeak(mi.Float(0.0), mi.Bool(False), mi.Float(-1.0), mi.Float(0.0), mi.Float(0.0), mi.Float(1e30))
         # ray 1: deepest points 0 and 2, where F_a - F_b stays negative: no crossing in the gap
         ts = [mi.Float([0.5, 0.0]), mi.Float([3.0, 2.0])]
-        out = VSRDSilhouetteIntegrator._residual_peaks(sdf, [peak, none], ts)[0]
+        out = VSRDSilhouetteIntegrator._residual_peaks(sdf, [peak, none], ts, 0.5)[0]
+        kept = VSRDSilhouetteIntegrator._residual_peaks(sdf, [far, none], ts, 0.5)[0]
+    np.testing.assert_array_equal(np.array(kept.t), np.float32([1.2, 2.0]))
     t, lam = np.array(out.t), np.array(out.lam)
     assert abs(t[0] - 5.0 / 3.0) <= 1e-4, t  # 0.5 (t - 1) = 2 - t
     assert abs(lam[0] - 1.0 / 1.5) <= 1e-3, lam  # -g_b / (g_a - g_b) = 1 / 1.5
