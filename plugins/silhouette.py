@@ -280,6 +280,50 @@ def golden_section(fs, brackets, iterations: int, label: str) -> list[mi.Float]:
     return [golden_argmin(state[1 + 6 * k:7 + 6 * k]) for k in range(len(fs))]
 
 
+def golden_minimum(f, a: mi.Float, b: mi.Float, iterations: int, traceable: bool, label: str) -> mi.Float:
+    """Per lane, ``argmin`` of a unimodal ``f`` on ``(a, b)`` by ``iterations`` golden-section
+    steps: one symbolic loop where ``f`` is ``traceable``, else unrolled (one kernel a step;
+    ``f`` may launch kernels of its own, as the residual MLP does)."""
+    if traceable:
+        return golden_section([f], [(a, b)], iterations, label)[0]
+    x1, x2 = golden_probes(a, b)
+    state = (a, b, x1, x2, f(x1), f(x2))
+    for _ in range(iterations):
+        state = golden_step(state, f)
+        dr.eval(state)  # the same kernel every step
+    return golden_argmin(state)
+
+
+def illinois_root(g, lo: mi.Float, hi: mi.Float, g_lo: mi.Float, g_hi: mi.Float, steps: int,
+                  traceable: bool, label: str) -> mi.Float:
+    """Per lane, a root of ``g`` in ``[lo, hi]`` (``g_lo < 0 < g_hi``, the values at the ends)
+    by ``steps`` steps of regula falsi, Illinois variant (the end kept twice in a row has its
+    value halved: superlinear where ``g`` is smooth, never slower than bisection by much):
+    the last estimate. One symbolic loop where ``g`` is ``traceable``, else unrolled. Lanes
+    whose ends do not bracket a root return a point of ``[lo, hi]``."""
+    side = mi.Int32(0)  # -1: lo was replaced last, 1: hi
+
+    def step(t, lo, hi, g_lo, g_hi, side):
+        den = g_hi - g_lo
+        t = dr.clip(dr.fma(g_lo, (lo - hi) / dr.select(den > 0.0, den, 1.0), lo), lo, hi)
+        gt = g(t)
+        above = gt > 0.0
+        g_lo = dr.select(above & (side == 1), 0.5 * g_lo, g_lo)
+        g_hi = dr.select(~above & (side == -1), 0.5 * g_hi, g_hi)
+        return (t, dr.select(above, lo, t), dr.select(above, t, hi), dr.select(above, g_lo, gt),
+                dr.select(above, gt, g_hi), dr.select(above, mi.Int32(1), mi.Int32(-1)))
+
+    state = (mi.Float(lo), mi.Float(lo), mi.Float(hi), mi.Float(g_lo), mi.Float(g_hi), side)
+    if traceable:
+        state = dr.while_loop((mi.UInt32(0), *state), lambda i, *s: i < steps,
+                              lambda i, *s: (i + 1, *step(*s)), label=label)[1:]
+    else:
+        for _ in range(steps):
+            state = step(*state)
+            dr.eval(state)  # the same kernel every step
+    return state[0]
+
+
 def block_successor(n: int, m: int) -> mi.UInt32:
     """Per lane of ``n`` (blocks of ``m`` samples per ray) the index of the next sample in its
     block; the last sample of a block is its own successor."""
@@ -477,6 +521,10 @@ class PairScan:
     pairs: mi.UInt32  #: the valid pairs' indices
     rank: mi.UInt32  #: per pair its index among the valid ones
     at: Callable[[mi.UInt32, mi.Float], mi.Float]  #: ``F`` of given pairs at given ray parameters
+    #: ``at`` can run inside a symbolic loop (arithmetic and gathers: the chord grid; not the
+    #: residual MLP's batched evaluation, which compresses per instance), so iterative
+    #: searches on it run as one kernel instead of one per step
+    traceable: bool = False
 
     @staticmethod
     def of(valid: mi.Bool, at: Callable[[mi.UInt32, mi.Float], mi.Float]) -> "PairScan":
@@ -1230,7 +1278,7 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
                 if cfg.residual_grid > 0:
                     grid = self._chord_grid(dec, slot_views, slot_inst, count, picked)
                     # the grid's valid pairs (no second compress: it costs a host round trip)
-                    sdf = PairScan(grid.points > 0, grid.pairs, grid.rank, grid.sdf)
+                    sdf = PairScan(grid.points > 0, grid.pairs, grid.rank, grid.sdf, traceable=True)
                 else:
                     sdf = PairScan.of(concat([count > b for b in range(len(slot_inst))]),
                                       self._pair_sdf(slot_views, slot_inst))
@@ -1452,18 +1500,7 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         lo, hi = dr.gather(mi.Float, lo, idx), dr.gather(mi.Float, hi, idx)
         g_lo, g_hi = gap(lo), gap(hi)
         ok = real & (g_lo < 0.0) & (g_hi > 0.0)
-        # regula falsi, Illinois variant: the end kept twice in a row has its value halved
-        side = mi.Int32(0)  # -1: lo was replaced last, 1: hi
-        for _ in range(PEAK_STEPS):
-            t = dr.clip(dr.fma(g_lo, (lo - hi) / dr.select(ok, g_hi - g_lo, 1.0), lo), lo, hi)
-            g = gap(t)
-            above = g > 0.0
-            g_lo = dr.select(above & (side == 1), 0.5 * g_lo, g_lo)
-            g_hi = dr.select(~above & (side == -1), 0.5 * g_hi, g_hi)
-            lo, g_lo = dr.select(above, lo, t), dr.select(above, g_lo, g)
-            hi, g_hi = dr.select(above, t, hi), dr.select(above, g, g_hi)
-            side = dr.select(above, mi.Int32(1), mi.Int32(-1))
-            dr.eval(t, lo, hi, g_lo, g_hi, side)  # the same kernel every step
+        t = illinois_root(gap, lo, hi, g_lo, g_hi, PEAK_STEPS, sdf.traceable, "vsrd_residual_peaks")
         # slopes of F_a, F_a' along the ray at the crossing (central differences)
         slope = [(sdf.at(p, t + KINK_PROBE) - sdf.at(p, t - KINK_PROBE)) * (0.5 / KINK_PROBE) for p in (pa, pb)]
         crossing = (slope[0] > 0.0) & (slope[1] < 0.0)
@@ -1569,13 +1606,9 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         ac = mi.Float(dr.gather(mi.UInt32, arg, smooth))
         pc = dr.gather(mi.UInt32, pair, smooth)
 
-        lo, hi = dr.fma(wc, ac - 3.0, tc), dr.fma(wc, ac - 1.0, tc)
-        x1, x2 = golden_probes(lo, hi)
-        state = (lo, hi, x1, x2, sdf.at(pc, x1), sdf.at(pc, x2))
-        for _ in range(KINK_GOLDEN):  # unrolled: sdf may run the residual MLP
-            state = golden_step(state, lambda t: sdf.at(pc, t))
-            dr.eval(state)  # one kernel, the same every step
-        dr.scatter(found, golden_argmin(state), dr.gather(mi.UInt32, live, smooth), real)
+        t_min = golden_minimum(lambda t: sdf.at(pc, t), dr.fma(wc, ac - 3.0, tc), dr.fma(wc, ac - 1.0, tc),
+                               KINK_GOLDEN, sdf.traceable, "vsrd_kink_golden")
+        dr.scatter(found, t_min, dr.gather(mi.UInt32, live, smooth), real)
         cands = [dr.gather(mi.Float, found, dr.arange(mi.UInt32, n_pairs) + dr.opaque(mi.UInt32, c * n_pairs))
                  for c in range(len(ts))]
         out, low = [], mi.Float(-1.0)

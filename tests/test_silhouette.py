@@ -17,7 +17,8 @@ import drjit as dr
 import mitsuba as mi
 
 from vsrd_plugins.sdf import instance_properties
-from vsrd_plugins.silhouette import KINK_MINIMA, GapPeak, PairScan, VSRDSilhouetteIntegrator
+from vsrd_plugins.silhouette import (KINK_MINIMA, GapPeak, PairScan, VSRDSilhouetteIntegrator, golden_minimum,
+                                     illinois_root)
 from vsrd_mi.bench.integrator import BenchConfig, central_differences, fd_steps, new_kernels, reference_grid
 
 BOX_KEYS = ("box_dims", "box_centre", "box_yaw", "box_velocity")
@@ -961,6 +962,23 @@ def test_kink_minima_find_the_minimum_beside_a_sharp_bend():
     first = np.array(out[0])
     assert abs(first[0] - t_min) <= 1e-4, (first, t_min)
     assert first[1] == -1.0 and np.all(np.array(out[1]) == -1.0), out
+
+
+@pytest.mark.parametrize("traceable", [False, True])
+def test_golden_minimum_and_illinois_root(traceable):
+    """The searches behind the kink minima and the residual peaks, in a symbolic loop or
+    unrolled: the minimum of ``cosh(t - c)`` on a bracket around ``c`` and the root of a
+    smooth increasing ``g`` (exact values from the closed forms)."""
+    c = mi.Float([0.3, -1.2, 2.5])
+    t_min = golden_minimum(lambda t: dr.cosh(t - c), c - 0.7, c + 1.1, 24, traceable, "test_golden")
+    np.testing.assert_allclose(np.array(t_min), np.array(c), atol=1e-3)
+
+    def g(t):
+        return t * t * t + t - c  # increasing; the root of t^3 + t = c
+
+    lo, hi = mi.Float([-2.0, -2.0, -2.0]), mi.Float([2.0, 2.0, 2.0])
+    root = np.array(illinois_root(g, lo, hi, g(lo), g(hi), 12, traceable, "test_illinois"))
+    np.testing.assert_allclose(root ** 3 + root, np.array(c), atol=1e-5)
 
 
 def test_residual_peaks_move_to_the_instance_sdfs_crossing():
