@@ -1549,10 +1549,10 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
 
     @staticmethod
     def _kink_minima(sdf, kinks: list[mi.Float], bends: tuple[list[mi.Float], list[mi.Float]] = ([], []),
-                     sharpest: float = 0.0) -> list[mi.Float]:
+                     sharpest: float = 0.0) -> list[tuple[mi.Float, mi.Float]]:
         """Per (slot, ray) pair, slot-major: where ``F = B + R`` has a local minimum at a kink of
-        ``B`` or beside a sharp bend of it, ascending, at most :data:`KINK_MINIMA` of them,
-        ``-1`` past the last.
+        ``B`` or beside a sharp bend of it, and ``F`` there, ascending, at most
+        :data:`KINK_MINIMA` of them, ``-1`` past the last.
 
         ``kinks`` (ascending, ``-1`` for none; :func:`~vsrd_plugins.sdf.box_ray_kinks`):
         inside a box ``B`` along a ray is the max of its face planes, convex and piecewise
@@ -1580,7 +1580,7 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         # the candidates, (candidate, pair) flat; padded lanes probe candidate 0 and write nothing
         live, real = compress_wide(cand_t >= 0.0)
         n_live = dr.width(live)
-        found = dr.full(mi.Float, -1.0, dr.width(cand_t))
+        found, value = dr.full(mi.Float, -1.0, dr.width(cand_t)), dr.zeros(mi.Float, dr.width(cand_t))
         t_c, w_c = dr.gather(mi.Float, cand_t, live), dr.gather(mi.Float, cand_w, live)
         pair = live % dr.opaque(mi.UInt32, n_pairs)
         lane = dr.arange(mi.UInt32, 5 * n_live)
@@ -1600,6 +1600,7 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         is_min = real & inner & (f1 < f0) & (f1 < f2)
         at_kink = (live < dr.opaque(mi.UInt32, exact * n_pairs)) & (arg == 2)
         dr.scatter(found, t_c, live, is_min)
+        dr.scatter(value, f1, live, is_min)
         # elsewhere the minimum lies between the least probe's neighbours: golden section
         smooth, real = compress_wide(is_min & ~at_kink)
         tc, wc = dr.gather(mi.Float, t_c, smooth), dr.gather(mi.Float, w_c, smooth)
@@ -1609,15 +1610,19 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         t_min = golden_minimum(lambda t: sdf.at(pc, t), dr.fma(wc, ac - 3.0, tc), dr.fma(wc, ac - 1.0, tc),
                                KINK_GOLDEN, sdf.traceable, "vsrd_kink_golden")
         dr.scatter(found, t_min, dr.gather(mi.UInt32, live, smooth), real)
+        dr.scatter(value, sdf.at(pc, t_min), dr.gather(mi.UInt32, live, smooth), real)
         cands = [dr.gather(mi.Float, found, dr.arange(mi.UInt32, n_pairs) + dr.opaque(mi.UInt32, c * n_pairs))
                  for c in range(len(ts))]
+        values = [dr.gather(mi.Float, value, dr.arange(mi.UInt32, n_pairs) + dr.opaque(mi.UInt32, c * n_pairs))
+                  for c in range(len(ts))]
         out, low = [], mi.Float(-1.0)
         for _ in range(KINK_MINIMA):  # the least minima in order
-            nxt = mi.Float(dr.inf)
-            for t in cands:
-                nxt = dr.select((t > low) & (t < nxt), t, nxt)
+            nxt, f_nxt = mi.Float(dr.inf), mi.Float(0.0)
+            for t, f in zip(cands, values):
+                take = (t > low) & (t < nxt)
+                nxt, f_nxt = dr.select(take, t, nxt), dr.select(take, f, f_nxt)
             low = dr.select(dr.isfinite(nxt), nxt, low)
-            out.append(dr.select(dr.isfinite(nxt), nxt, -1.0))
+            out.append((dr.select(dr.isfinite(nxt), nxt, -1.0), f_nxt))
         dr.eval(out)
         return out
 
@@ -1733,7 +1738,8 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         return out
 
     def _snapped_positions(self, sdf, starts: list[mi.Float], ends: list[mi.Float], k_sub: int, k: int,
-                           dense_at_b: bool = False, kinks: list[mi.Float] = ()) -> list[list[mi.Float]]:
+                           dense_at_b: bool = False,
+                           kinks: list[tuple[mi.Float, mi.Float]] = ()) -> list[list[mi.Float]]:
         """Per slot the positions of the first ``k`` samples of the sub-band ``(starts[b],
         ends[b]]`` of ``k_sub`` samples (:meth:`_sub_sample`), moved to the local extrema of
         ``F = B + R`` (detached; ``sdf``: the :class:`PairScan` of the pairs).
@@ -1748,10 +1754,12 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         position) are scanned, over the cells of the ``k`` moved samples and, where ``k <
         k_sub``, the fixed next sample's. Every scan point that is a local extremum of the scan
         (by more than :data:`SNAP_PROMINENCE`) places a sample at the vertex of the parabola
-        through it and its two neighbours; ``kinks`` (per pair, ascending, :meth:`_kink_minima`),
-        the kinks of ``B`` where ``F`` has a local minimum, place one each exactly (a parabola
-        across a kink misses it by up to a cell) and replace the scan extrema whose brackets
-        hold them.
+        through it and its two neighbours; ``kinks`` (per pair, ascending, with ``F`` there,
+        :meth:`_kink_minima`), the minima of ``F`` at kinks and sharp bends of ``B``, place one
+        each exactly (a parabola across a kink misses it by up to a cell; a second one in one
+        scan interval goes without), and the scan sees them as points of its own: an extremum
+        test next to a kink compares with the kink's value (the scan point beyond it can hide a
+        maximum before the kink, or show a minimum that is the kink's).
         Taken in order along the ray, the ``j``-th of the ``q`` extrema takes the first sample
         after the last one taken: its own cell's, or an earlier one where its own would leave
         fewer than ``q - j`` samples for the extrema after it, or a later one where its own is
@@ -1797,32 +1805,42 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         # at its own cell's unless that would leave too few samples for the q - j after it.
         # A kink on the fixed samples around the cells (the deepest point, a band's centre)
         # has one already
-        pending = [(kt > a + KINK_PROBE) & (kt < nominal[cells] - KINK_PROBE) for kt in kinks]
+        pending = [(kt > a + KINK_PROBE) & (kt < nominal[cells] - KINK_PROBE) for kt, _ in kinks]
 
         def kink_in(x0, x1):
             """The first pending kink in the scan interval ``(x0, x1]`` (its place), and whether
             there is one (a second one there goes without)."""
             here, at = mi.Bool(False), x1
-            for pend, kt in reversed(list(zip(pending, kinks))):
+            for pend, (kt, _) in reversed(list(zip(pending, kinks))):
                 inside = pend & (x0 < kt) & (kt <= x1)
                 here, at = here | inside, dr.select(inside, kt, at)
             return here, at
 
         events = []
-        q = mi.UInt32(0)
         for m in range(1, len(ts)):
             x0, x1 = ts[m - 1], ts[m]
             cell = mi.UInt32(min((m + per - 1) // per, k))
-            # a kink in the interval ending at scan point m takes m's event: the extremum there,
-            # whose bracket holds the kink, is the scan's smoothed view of it
+            # a kink in the interval ending at scan point m takes the event of the scan point
+            # before it where that has no extremum, else m's (an extremum at m then goes
+            # without: three features within two scan intervals)
             event, at = kink_in(x0, x1)
+            if m > 1:
+                prev_event, prev_at, prev_cell = events[-1]
+                to_prev = event & ~prev_event
+                events[-1] = (prev_event | to_prev, dr.select(to_prev, at, prev_at), prev_cell)
+                event &= ~to_prev
             if m < len(ts) - 1:
                 x2 = ts[m + 1]
                 f0, f1, f2 = v[m - 1], v[m], v[m + 1]
+                # the nearest kink on either side between the scan points stands in for them
+                for pend, (kt, kf) in zip(pending, kinks):
+                    left = pend & (x0 < kt) & (kt < x1)
+                    x0, f0 = dr.select(left, kt, x0), dr.select(left, kf, f0)
+                for pend, (kt, kf) in reversed(list(zip(pending, kinks))):
+                    right = pend & (x1 < kt) & (kt < x2)
+                    x2, f2 = dr.select(right, kt, x2), dr.select(right, kf, f2)
                 extremum = ((f1 > f0) & (f1 >= f2)) | ((f1 < f0) & (f1 <= f2))
                 extremum &= dr.maximum(dr.abs(f1 - f0), dr.abs(f1 - f2)) > SNAP_PROMINENCE
-                for pend, kt in zip(pending, kinks):  # a kink's own bracket
-                    extremum &= ~(pend & (x0 < kt) & (kt < x2))
                 # vertex of the parabola through the three points
                 d0, d2 = x1 - x0, x1 - x2
                 num = d0 * d0 * (f1 - f2) - d2 * d2 * (f1 - f0)
@@ -1831,6 +1849,8 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
                 at = dr.select(event, at, dr.clip(vertex, x0, x2))
                 event |= extremum
             events.append((event, at, cell))
+        q = mi.UInt32(0)
+        for event, _, _ in events:
             q += dr.select(event, 1, 0)
         pos = list(nominal[1:k + 1])
         taken = [mi.Bool(False) for _ in range(k)]

@@ -884,7 +884,8 @@ def sine_cell_scan(cell: int, amp: float, slope: float, kink_between: tuple[int,
     def moved(kinks=()):
         with dr.suspend_grad():
             sdf = PairScan.of(mi.Bool([True, True]), at)
-            out = it._snapped_positions(sdf, [mi.Float([a, a])], [mi.Float([b, b])], k, k, kinks=list(kinks))[0]
+            out = it._snapped_positions(sdf, [mi.Float([a, a])], [mi.Float([b, b])], k, k,
+                                        kinks=[(kt, at(None, kt)) for kt in kinks])[0]
         return np.array([np.array(p)[0] for p in out])
 
     # F's slope across the sine cell (after the kink where there is one)
@@ -921,6 +922,39 @@ def test_moved_samples_take_crowded_extrema_and_kinks():
     assert np.min(np.abs(moved() - kink)) > 1e-3
 
 
+def test_moved_samples_see_a_maximum_before_a_kink():
+    """A maximum of ``B + R`` just before a kink minimum, with ``F`` rising steeply after the
+    kink: the scan points on either side of the maximum and the kink show ``F`` rising, but
+    with the kink's value standing in for the scan point beyond it the maximum is an extremum
+    and gets a sample (within a tenth of the cell), and the kink one exactly
+    (:meth:`_snapped_positions`; without the kink neither)."""
+    it = make({"centres": np.array([[0.0, 0.0, 10.0]]), "sizes": np.array([[1.8, 1.5, 4.2]]),
+               "yaws": np.zeros(1)}, residual=True)
+    k, a, b = 6, 0.0, 6.0
+    assert it.cfg.residual_tail_scan == 3
+    lo, hi = [float(np.array(it._sub_sample(mi.Float(a), mi.Float(b), i, k))[0]) for i in (3, 4)]
+    w = hi - lo
+    t_max, kink = lo + 0.6 * w, lo + 0.75 * w  # scan points of the cell at 1/3, 2/3 and 1
+
+    def f(t):
+        before = 0.5 - 2.0 * (t - t_max) ** 2
+        return np.where(t <= kink, before, 0.5 - 2.0 * (kink - t_max) ** 2 + 2.0 * (t - kink))
+
+    def at(pair, t):
+        return mi.Float(f(np.array(t, dtype=np.float64)).astype(np.float32))
+
+    with dr.suspend_grad():
+        sdf = PairScan.of(mi.Bool([True, True]), at)
+        kt = mi.Float([kink, kink])
+        moved = [np.array([np.array(p)[0] for p in it._snapped_positions(
+            sdf, [mi.Float([a, a])], [mi.Float([b, b])], k, k, kinks=kinks)[0]])
+            for kinks in ([(kt, at(None, kt))], [])]
+    assert np.all(np.diff(moved[0]) >= 0.0), moved[0]
+    assert np.min(np.abs(moved[0] - kink)) <= 1e-5, (kink, moved[0])
+    assert np.min(np.abs(moved[0] - t_max)) <= 0.1 * w, (t_max, moved[0])
+    assert np.min(np.abs(moved[1] - t_max)) > 0.1 * w, (t_max, moved[1])
+
+
 def test_kink_minima_keep_the_kinks_where_the_sdf_has_a_local_minimum():
     """Of a pair's kinks of ``B`` (ascending), the ones where ``F`` is below its values on either
     side are kept, in order and compacted to the front: ``F`` falls to a kink at 2, rises with
@@ -939,7 +973,8 @@ def test_kink_minima_keep_the_kinks_where_the_sdf_has_a_local_minimum():
         kinks = [mi.Float([2.0, 3.0]), mi.Float([3.5, 4.5]), mi.Float([5.0, 6.0]), mi.Float([-1.0, -1.0])]
         out = VSRDSilhouetteIntegrator._kink_minima(sdf, kinks)
     assert len(out) == KINK_MINIMA == 2
-    np.testing.assert_allclose(np.stack([np.array(x) for x in out]), [[2.0, 3.0], [5.0, 6.0]])
+    np.testing.assert_allclose(np.stack([np.array(t) for t, _ in out]), [[2.0, 3.0], [5.0, 6.0]])
+    np.testing.assert_allclose(np.stack([np.array(v) for _, v in out]), [[0.0, 0.0], [0.15, 0.15]], atol=1e-6)
 
 
 def test_kink_minima_find_the_minimum_beside_a_sharp_bend():
@@ -959,9 +994,10 @@ def test_kink_minima_find_the_minimum_beside_a_sharp_bend():
         none = mi.Float([-1.0, -1.0])
         bends = ([mi.Float([3.0, 3.0])] + [none] * 5, [mi.Float([rho, 0.3])] + [mi.Float([1.0, 1.0])] * 5)
         out = VSRDSilhouetteIntegrator._kink_minima(sdf, [none], bends, 0.25)
-    first = np.array(out[0])
+    first, value = np.array(out[0][0]), np.array(out[0][1])
     assert abs(first[0] - t_min) <= 1e-4, (first, t_min)
-    assert first[1] == -1.0 and np.all(np.array(out[1]) == -1.0), out
+    assert abs(value[0] - (np.sqrt(rho * rho + (t_min - 3.0) ** 2) - g * (t_min - 3.0))) <= 1e-6, value
+    assert first[1] == -1.0 and np.all(np.array(out[1][0]) == -1.0), out
 
 
 @pytest.mark.parametrize("traceable", [False, True])
