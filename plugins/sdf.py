@@ -273,7 +273,7 @@ def envelope_blend(value: mi.Float, fa: mi.Float, fb: mi.Float, lam: mi.Float) -
 
 
 def box_sdf_ray_local(p: mi.Vector3f, d: mi.Vector3f, half: mi.Vector3f,
-                      tol: float | mi.Float = RIDGE_TOLERANCE) -> mi.Float:
+                      tol: float | mi.Float = RIDGE_TOLERANCE, kink_lam: mi.Float | None = None) -> mi.Float:
     r""":func:`box_sdf_local` at a point of a ray with direction ``d``, with the envelope gradient
     at the ray's deepest point inside the box.
 
@@ -292,10 +292,11 @@ def box_sdf_ray_local(p: mi.Vector3f, d: mi.Vector3f, half: mi.Vector3f,
     the faces within ``tol`` of the max include a decreasing and an increasing one (the most
     negative and most positive slopes are blended), this returns ``B`` with the blended gradient;
     elsewhere exactly :func:`box_sdf_local`. ``d`` need not be normalised (``lambda`` is scale-free).
+    ``kink_lam``: per point a kink's own weight, see :func:`ridge_faces`.
     """
     f = box_sdf_local(p, half)
     faces = face_planes(p, half)
-    ridge, ia, ib, lam = ridge_faces(p, d, half, tol)
+    ridge, ia, ib, lam = ridge_faces(p, d, half, tol, kink_lam)
 
     def face(idx):
         out = faces[5]
@@ -374,12 +375,18 @@ def box_ray_bends(o: mi.Vector3f, d: mi.Vector3f, half: mi.Vector3f, t0: mi.Floa
         return ts, bs
 
 
-def ridge_faces(p: mi.Vector3f, d: mi.Vector3f, half: mi.Vector3f,
-                tol: float | mi.Float = RIDGE_TOLERANCE) -> tuple[mi.Bool, mi.UInt32, mi.UInt32, mi.Float]:
+def ridge_faces(p: mi.Vector3f, d: mi.Vector3f, half: mi.Vector3f, tol: float | mi.Float = RIDGE_TOLERANCE,
+                kink_lam: mi.Float | None = None) -> tuple[mi.Bool, mi.UInt32, mi.UInt32, mi.Float]:
     """The ridge of :func:`box_sdf_ray_local` at ``p`` (detached): whether the faces within
     ``tol`` of the max include a decreasing and an increasing one along ``d``, the two blended
     faces ``a`` (steepest decreasing) and ``b`` (steepest increasing) as indices into
-    :func:`face_planes`, and ``lambda_a``."""
+    :func:`face_planes`, and ``lambda_a``.
+
+    Where ``kink_lam >= 0`` the point is a kink of ``B`` along the ray at which a field
+    ``F = B + R`` has a local minimum, with that weight from ``F``'s own slopes on either side
+    (``R`` moves the minimum's envelope off ``B``'s, and makes kinks minima whose faces both
+    rise or both fall): there the blended faces are the near faces of the least (``a``, the
+    envelope before the kink) and the greatest slope (``b``, after it)."""
     with dr.suspend_grad():
         p, d, half = dr.detach(p), dr.detach(d), dr.detach(half)
         v = face_planes(p, half)
@@ -395,6 +402,18 @@ def ridge_faces(p: mi.Vector3f, d: mi.Vector3f, half: mi.Vector3f,
             ib, gb = dr.select(inc_j, j, ib), dr.select(inc_j, slopes[j], gb)
         ridge = (m < 0.0) & (ia < 6) & (ib < 6)
         lam = envelope_weight(dr.select(ridge, ga, -1.0), dr.select(ridge, gb, 1.0))
+        if kink_lam is not None:
+            ka, kb = mi.UInt32(6), mi.UInt32(6)
+            gka, gkb = mi.Float(dr.inf), mi.Float(-dr.inf)
+            for j in range(6):
+                near = (m - v[j]) <= tol
+                lo_j, hi_j = near & (slopes[j] < gka), near & (slopes[j] > gkb)
+                ka, gka = dr.select(lo_j, j, ka), dr.select(lo_j, slopes[j], gka)
+                kb, gkb = dr.select(hi_j, j, kb), dr.select(hi_j, slopes[j], gkb)
+            kink = kink_lam >= 0.0
+            ia, ib = dr.select(kink, ka, ia), dr.select(kink, kb, ib)
+            ridge = dr.select(kink, (m < 0.0) & (ka < 6) & (kb < 6) & (gka < gkb), ridge)
+            lam = dr.select(kink, kink_lam, lam)
     return ridge, ia, ib, lam
 
 
@@ -1119,15 +1138,17 @@ class InstanceField:
     def _ridge_lanes(self, dec: DecodedBoxes, p: mi.Point3f, time: mi.Float, inst: mi.UInt32,
                      ridge: tuple[mi.UInt32, mi.Vector3f, float | mi.Float]) -> tuple[mi.UInt32, mi.Float]:
         """Per lane the ridge faces ``8 a + b`` and ``lambda_a`` (:func:`ridge_faces`) at the
-        lanes ``ridge[0]`` (ray directions ``ridge[1]``, face tolerance ``ridge[2]``) that lie
-        on a ridge; ``lambda = -1`` elsewhere (detached)."""
-        lanes, dirs, tol = ridge
+        lanes ``ridge[0]`` (ray directions ``ridge[1]``, face tolerance ``ridge[2]``, and
+        optionally per lane a kink's weight ``ridge[3]``, ``-1`` for none) that lie on a ridge;
+        ``lambda = -1`` elsewhere (detached)."""
+        lanes, dirs, tol = ridge[:3]
+        kink_lam = ridge[3] if len(ridge) > 3 else None
         width = dr.width(p.x)
         with dr.suspend_grad():
             pr, tr, ir = (dr.gather(type(p), p, lanes), dr.gather(mi.Float, time, lanes),
                           dr.gather(mi.UInt32, inst, lanes))
             bv = self.view_lanes(dec, ir, tr)
-            on, ia, ib, lam = ridge_faces(bv.to_local(pr), bv.dir_to_local(dirs), bv.half, tol)
+            on, ia, ib, lam = ridge_faces(bv.to_local(pr), bv.dir_to_local(dirs), bv.half, tol, kink_lam)
             faces, lams = dr.zeros(mi.UInt32, width), dr.full(mi.Float, -1.0, width)
             dr.scatter(faces, ia * 8 + ib, lanes)
             dr.scatter(lams, dr.select(on, lam, -1.0), lanes)
@@ -1169,15 +1190,17 @@ class InstanceField:
         """Zero-valued term that turns the box gradient at lanes ``ridge[0]`` (each the deepest
         point of its ray in its lane's box; ray directions ``ridge[1]``, face tolerance
         ``ridge[2]``) into the envelope gradient of :func:`box_sdf_ray_local`; only those lanes
-        pay for it. ``inst`` holds each lane's instance (one value: every lane)."""
-        lanes, dirs, tol = ridge
+        pay for it. ``inst`` holds each lane's instance (one value: every lane); an optional
+        ``ridge[3]`` gives kinks their own weights (:func:`ridge_faces`)."""
+        lanes, dirs, tol = ridge[:3]
+        kink_lam = ridge[3] if len(ridge) > 3 else None
         with dr.suspend_grad():
             pr = dr.gather(type(p), p, lanes)
             tr = dr.gather(mi.Float, time, lanes)
             ir = inst if dr.width(inst) == 1 else dr.gather(mi.UInt32, inst, lanes)
         bv = self.view_lanes(dec, ir, tr)
         pl = bv.to_local(pr)
-        delta = (box_sdf_ray_local(pl, dr.detach(bv.dir_to_local(dirs)), bv.half, tol)
+        delta = (box_sdf_ray_local(pl, dr.detach(bv.dir_to_local(dirs)), bv.half, tol, kink_lam)
                  - box_sdf_local(pl, bv.half))
         out = dr.zeros(mi.Float, dr.width(p.x))
         dr.scatter_add(out, delta, lanes)

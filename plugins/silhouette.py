@@ -435,18 +435,24 @@ class Slot:
     peak_b: mi.Float  #: the peak's falling slot
     tail_end: mi.Float  #: end of the second tail (the enlarged box's exit)
     deepest: mi.Float  #: the sample at the box's least ``B + R`` (a hit's deepest point)
+    #: the minima of ``B + R`` at kinks of ``B`` that the moved samples take, and their envelope
+    #: weights (``t0, lambda0, t1, ...``; ``t = -1``: none, ``lambda = -1``: beside a bend), see
+    #: :meth:`VSRDSilhouetteIntegrator._kink_minima`
+    kinks: tuple = ()
     #: band and tail positions moved to the extrema of ``B + R``, in the order
     #: :meth:`VSRDSilhouetteIntegrator._snapped_slots` returns them (empty: not moved)
     moved: tuple = ()
 
     def map(self, f) -> "Slot":
         """The slot with ``f`` applied to every array (the moved positions included)."""
-        return Slot(**{fd.name: f(getattr(self, fd.name)) for fd in fields(self) if fd.name != "moved"},
-                    moved=tuple(f(v) for v in self.moved))
+        tuples = ("moved", "kinks")
+        return Slot(**{fd.name: f(getattr(self, fd.name)) for fd in fields(self) if fd.name not in tuples},
+                    **{name: tuple(f(v) for v in getattr(self, name)) for name in tuples})
 
     def arrays(self) -> tuple:
-        """Every array of the slot, the moved positions last."""
-        return (*(getattr(self, fd.name) for fd in fields(self) if fd.name != "moved"), *self.moved)
+        """Every array of the slot, the kinks' and the moved positions last."""
+        return (*(getattr(self, fd.name) for fd in fields(self) if fd.name not in ("moved", "kinks")),
+                *self.kinks, *self.moved)
 
 
 @dataclass(frozen=True)
@@ -572,6 +578,9 @@ class SampleGroup(NamedTuple):
     peak: tuple
     own: mi.UInt32 | None  #: per sample its band in an isolated group (``None`` otherwise)
     rows: mi.UInt32  #: the group's rays as indices into the band search's rays (its pairs' rays)
+    #: per sample at a kink of its band's box where ``B + R`` has a minimum (``deepest`` names
+    #: the band) the envelope weight of the face before it, else ``-1`` (see :class:`Slot`)
+    kink_lam: mi.Float
 
 
 def pick(values: list[mi.Float], i: mi.UInt32) -> mi.Float:
@@ -793,7 +802,8 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         # SDF (and the residual MLP) is evaluated in one batch
         with dr.suspend_grad():
             ray_lanes, ts, insts, deep, pairs = [], [], [], [], []
-            for rays, t, m, _, slot_inst, deepest, _, own, rows in groups:
+            ray_lams = []
+            for rays, t, m, _, slot_inst, deepest, _, own, rows, kink_lam in groups:
                 r = dr.arange(mi.UInt32, dr.width(t)) // m
                 ray_of = dr.gather(mi.UInt32, rays, r)
                 if grid is not None:  # each lane's (slot, ray) pair of the chord grid
@@ -807,21 +817,25 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
                         inst_own = dr.select(own == b, dr.gather(mi.UInt32, ib, r), inst_own)
                     insts.append(inst_own)
                     deep.append(dr.select(deepest == own, 1, 0))
+                    ray_lams.append(dr.full(mi.Float, -1.0, dr.width(t)))
                     continue
                 for b, ib in enumerate(slot_inst):
                     ray_lanes.append(ray_of)
                     ts.append(t)
                     insts.append(dr.gather(mi.UInt32, ib, r))
                     deep.append(dr.select(deepest == b, 1, 0))
+                    ray_lams.append(dr.select(deepest == b, kink_lam, -1.0))
             ray_all = concat(ray_lanes)
             s_all = concat(ts)
             p_all, t_all, d_all = self._positions(ray_all, o, d, time, s_all, 1)
             i_all = concat(insts)
-            # lanes at the deepest point of their ray in their instance's box (ridge gradients)
+            # lanes at the deepest point of their ray in their instance's box, or at a kink of
+            # it where B + R has a minimum (ridge gradients; a kink with its own weight)
             deep = dr.compress(concat(deep) > 0)
             ridge = None
             if self.cfg.ridge_gradients and dr.width(deep):
-                ridge = (deep, dr.gather(mi.Vector3f, d_all, deep), RIDGE_TOLERANCE)
+                ridge = (deep, dr.gather(mi.Vector3f, d_all, deep), RIDGE_TOLERANCE,
+                         dr.gather(mi.Float, concat(ray_lams), deep))
         # beyond the culling margin of its box a lane's SDF cannot move the integral by more
         # than exp(-reach) (see _cull_margin): its value is kept, its gradient dropped
         weights = self.field.residual_weights()
@@ -839,7 +853,7 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
                                      frozen=frozen, **kw)
         flat = dr.zeros(mi.Float, n_rays * n_inst)
         start = 0
-        for rays, t, m, active, slot_inst, _, peak, own, _ in groups:
+        for rays, t, m, active, slot_inst, _, peak, own, _, _ in groups:
             w = dr.width(t)
             with dr.suspend_grad():
                 lane = dr.arange(mi.UInt32, w)
@@ -1342,8 +1356,12 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
                                       dr.select(hit, concat([pk.surface_exit for pk in picked]), -1.0))
                 bends = box_ray_bends(*views, dr.select(valid, concat([pk.entry for pk in picked]), 0.0),
                                       dr.select(valid, concat([pk.exit for pk in picked]), -1.0))
-                slots = [replace(sl, moved=tuple(x for part in parts for x in part)) for sl, parts in
-                         zip(slots, zip(*self._snapped_slots(sdf, slots, kinks, bends)))]
+                minima = self._kink_minima(sdf, kinks, bends, 1.0 / self._residual_omega())
+                no = dr.opaque(mi.UInt32, dr.width(count))
+                slots = [replace(sl, moved=tuple(x for part in parts for x in part),
+                                 kinks=tuple(dr.gather(mi.Float, x, dr.arange(mi.UInt32, dr.width(count)) + no * b)
+                                             for t, _, lam in minima for x in (t, lam)))
+                         for b, (sl, parts) in enumerate(zip(slots, zip(*self._snapped_slots(sdf, slots, minima))))]
             isolated = self._isolated(picked, count)
             dr.eval(count, slots, slot_inst, slot_hit, isolated)
         return ray_idx, count, slots, slot_inst, slot_hit, isolated, grid
@@ -1528,20 +1546,18 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         (:meth:`_snapped_positions`): the tail samples are on and ``residual_tail_scan > 0``."""
         return self._tail_samples()[1] > 0 and self.cfg.residual_tail_scan > 0
 
-    def _snapped_slots(self, sdf, slots: list[Slot], kinks: list[mi.Float],
-                       bends: tuple[list[mi.Float], list[mi.Float]]) -> list[list[list[mi.Float]]]:
+    def _snapped_slots(self, sdf, slots: list[Slot], minima: list[tuple]) -> list[list[list[mi.Float]]]:
         """Moved positions of every slot's samples in the order :meth:`_sub_bands` reads them: the first
         tail's ``kp`` in ``(hi, extra)``, the second tail's ``kq`` in ``(extra, tail end]``, the
         band's first half's ``K/2 - 1`` in ``(lo, mid)`` (its last sample, the centre, stays)
         and its second half's ``K/2`` in ``(mid, hi]``; per part a list (slot) of lists
-        (sample) of arrays (ray). ``kinks``, ``bends``: the kinks and bends of each (slot, ray)
-        pair's ``B`` along the ray (:meth:`_kink_minima`)."""
+        (sample) of arrays (ray). ``minima``: the minima of each (slot, ray) pair's ``F`` at
+        the kinks and bends of its ``B`` (:meth:`_kink_minima`)."""
         kp, kq = self._tail_samples()
         k1, k2 = self._halves(self.cfg.band_samples)
         lo, mid, hi, extra, tail = ([getattr(sl, name) for sl in slots]
                                     for name in ("lo", "mid", "hi", "extra", "tail_end"))
         empty = [[] for _ in slots]
-        minima = self._kink_minima(sdf, kinks, bends, 1.0 / self._residual_omega())
         return [self._snapped_positions(sdf, hi, extra, kp + 1, kp, kinks=minima) if kp else empty,
                 self._snapped_positions(sdf, extra, tail, kq, kq, kinks=minima),
                 self._snapped_positions(sdf, lo, mid, k1, k1 - 1, True, kinks=minima) if k1 > 1 else empty,
@@ -1549,10 +1565,11 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
 
     @staticmethod
     def _kink_minima(sdf, kinks: list[mi.Float], bends: tuple[list[mi.Float], list[mi.Float]] = ([], []),
-                     sharpest: float = 0.0) -> list[tuple[mi.Float, mi.Float]]:
+                     sharpest: float = 0.0) -> list[tuple[mi.Float, mi.Float, mi.Float]]:
         """Per (slot, ray) pair, slot-major: where ``F = B + R`` has a local minimum at a kink of
-        ``B`` or beside a sharp bend of it, and ``F`` there, ascending, at most
-        :data:`KINK_MINIMA` of them, ``-1`` past the last.
+        ``B`` or beside a sharp bend of it, ``F`` there and, at a kink, the envelope weight of
+        the face before it (from ``F``'s slopes on either side; ``-1`` beside a bend, where
+        ``F`` is smooth), ascending, at most :data:`KINK_MINIMA` of them, ``-1`` past the last.
 
         ``kinks`` (ascending, ``-1`` for none; :func:`~vsrd_plugins.sdf.box_ray_kinks`):
         inside a box ``B`` along a ray is the max of its face planes, convex and piecewise
@@ -1581,6 +1598,7 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         live, real = compress_wide(cand_t >= 0.0)
         n_live = dr.width(live)
         found, value = dr.full(mi.Float, -1.0, dr.width(cand_t)), dr.zeros(mi.Float, dr.width(cand_t))
+        weight = dr.full(mi.Float, -1.0, dr.width(cand_t))
         t_c, w_c = dr.gather(mi.Float, cand_t, live), dr.gather(mi.Float, cand_w, live)
         pair = live % dr.opaque(mi.UInt32, n_pairs)
         lane = dr.arange(mi.UInt32, 5 * n_live)
@@ -1601,6 +1619,9 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         at_kink = (live < dr.opaque(mi.UInt32, exact * n_pairs)) & (arg == 2)
         dr.scatter(found, t_c, live, is_min)
         dr.scatter(value, f1, live, is_min)
+        # at a kink the minimum's envelope weight of the face before it, from F's slopes on
+        # either side (B's faces plus R's slope; see sdf.ridge_faces)
+        dr.scatter(weight, envelope_weight((f1 - f0) / w_c, (f2 - f1) / w_c), live, is_min & at_kink)
         # elsewhere the minimum lies between the least probe's neighbours: golden section
         smooth, real = compress_wide(is_min & ~at_kink)
         tc, wc = dr.gather(mi.Float, t_c, smooth), dr.gather(mi.Float, w_c, smooth)
@@ -1613,16 +1634,16 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         dr.scatter(value, sdf.at(pc, t_min), dr.gather(mi.UInt32, live, smooth), real)
         cands = [dr.gather(mi.Float, found, dr.arange(mi.UInt32, n_pairs) + dr.opaque(mi.UInt32, c * n_pairs))
                  for c in range(len(ts))]
-        values = [dr.gather(mi.Float, value, dr.arange(mi.UInt32, n_pairs) + dr.opaque(mi.UInt32, c * n_pairs))
-                  for c in range(len(ts))]
+        values, weights = ([dr.gather(mi.Float, x, dr.arange(mi.UInt32, n_pairs) + dr.opaque(mi.UInt32, c * n_pairs))
+                            for c in range(len(ts))] for x in (value, weight))
         out, low = [], mi.Float(-1.0)
         for _ in range(KINK_MINIMA):  # the least minima in order
-            nxt, f_nxt = mi.Float(dr.inf), mi.Float(0.0)
-            for t, f in zip(cands, values):
+            nxt, f_nxt, w_nxt = mi.Float(dr.inf), mi.Float(0.0), mi.Float(-1.0)
+            for t, f, lam in zip(cands, values, weights):
                 take = (t > low) & (t < nxt)
-                nxt, f_nxt = dr.select(take, t, nxt), dr.select(take, f, f_nxt)
+                nxt, f_nxt, w_nxt = dr.select(take, t, nxt), dr.select(take, f, f_nxt), dr.select(take, lam, w_nxt)
             low = dr.select(dr.isfinite(nxt), nxt, low)
-            out.append((dr.select(dr.isfinite(nxt), nxt, -1.0), f_nxt))
+            out.append((dr.select(dr.isfinite(nxt), nxt, -1.0), f_nxt, w_nxt))
         dr.eval(out)
         return out
 
@@ -1739,7 +1760,7 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
 
     def _snapped_positions(self, sdf, starts: list[mi.Float], ends: list[mi.Float], k_sub: int, k: int,
                            dense_at_b: bool = False,
-                           kinks: list[tuple[mi.Float, mi.Float]] = ()) -> list[list[mi.Float]]:
+                           kinks: list[tuple[mi.Float, ...]] = ()) -> list[list[mi.Float]]:
         """Per slot the positions of the first ``k`` samples of the sub-band ``(starts[b],
         ends[b]]`` of ``k_sub`` samples (:meth:`_sub_sample`), moved to the local extrema of
         ``F = B + R`` (detached; ``sdf``: the :class:`PairScan` of the pairs).
@@ -1805,13 +1826,13 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         # at its own cell's unless that would leave too few samples for the q - j after it.
         # A kink on the fixed samples around the cells (the deepest point, a band's centre)
         # has one already
-        pending = [(kt > a + KINK_PROBE) & (kt < nominal[cells] - KINK_PROBE) for kt, _ in kinks]
+        pending = [(kt > a + KINK_PROBE) & (kt < nominal[cells] - KINK_PROBE) for kt, *_ in kinks]
 
         def kink_in(x0, x1):
             """The first pending kink in the scan interval ``(x0, x1]`` (its place), and whether
             there is one (a second one there goes without)."""
             here, at = mi.Bool(False), x1
-            for pend, (kt, _) in reversed(list(zip(pending, kinks))):
+            for pend, (kt, *_) in reversed(list(zip(pending, kinks))):
                 inside = pend & (x0 < kt) & (kt <= x1)
                 here, at = here | inside, dr.select(inside, kt, at)
             return here, at
@@ -1833,10 +1854,10 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
                 x2 = ts[m + 1]
                 f0, f1, f2 = v[m - 1], v[m], v[m + 1]
                 # the nearest kink on either side between the scan points stands in for them
-                for pend, (kt, kf) in zip(pending, kinks):
+                for pend, (kt, kf, *_) in zip(pending, kinks):
                     left = pend & (x0 < kt) & (kt < x1)
                     x0, f0 = dr.select(left, kt, x0), dr.select(left, kf, f0)
-                for pend, (kt, kf) in reversed(list(zip(pending, kinks))):
+                for pend, (kt, kf, *_) in reversed(list(zip(pending, kinks))):
                     right = pend & (x1 < kt) & (kt < x2)
                     x2, f2 = dr.select(right, kt, x2), dr.select(right, kf, f2)
                 extremum = ((f1 > f0) & (f1 >= f2)) | ((f1 < f0) & (f1 <= f2))
@@ -2114,12 +2135,20 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
                 dr.scatter(ts, t, r * m + rank)
                 # a hit band's extra sample is its box's deepest point; the band's last sample
                 # can coincide with it (then AD may take either of the two equal SDF values)
-                at_deepest = mi.Bool(False)
+                at_deepest, lam_k = mi.Bool(False), mi.Float(-1.0)
                 for b in range(g):
                     hb = dr.gather(mi.Bool, slot_hit[b], rows)
                     at_deepest = dr.select(band == b, hb & (t == sl[b].deepest), at_deepest)
+                    # a kink minimum with its weight, taken by a moved sample (or next to a
+                    # fixed one: the deepest point's sample gets the kink's weight then)
+                    kinks = sl[b].kinks
+                    for kt, kl in zip(kinks[0::2], kinks[1::2]):
+                        at_kink = (band == b) & (kt >= 0.0) & (kl >= 0.0) & (dr.abs(t - kt) <= KINK_PROBE)
+                        lam_k = dr.select(at_kink, kl, lam_k)
                 deepest = dr.zeros(mi.UInt32, na * m)
-                dr.scatter(deepest, dr.select(at_deepest, band, g), r * m + rank)
+                dr.scatter(deepest, dr.select(at_deepest | (lam_k >= 0.0), band, g), r * m + rank)
+                kink_lam = dr.full(mi.Float, -1.0, na * m)
+                dr.scatter(kink_lam, lam_k, r * m + rank)
                 # gap peaks: the two crossing bands and the envelope weight of the first
                 lam, pa, pb = mi.Float(-1.0), mi.Float(0.0), mi.Float(0.0)
                 for b in range(g - 1):
@@ -2137,4 +2166,4 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
                     own = dr.zeros(mi.UInt32, na * m)
                     dr.scatter(own, band, r * m + rank)
             # yield outside ``suspend_grad``: the consumer differentiates the integral
-            yield SampleGroup(rays, ts, m, active, inst, deepest, (peak_a, peak_b, peak_lam), own, sub)
+            yield SampleGroup(rays, ts, m, active, inst, deepest, (peak_a, peak_b, peak_lam), own, sub, kink_lam)

@@ -973,8 +973,11 @@ def test_kink_minima_keep_the_kinks_where_the_sdf_has_a_local_minimum():
         kinks = [mi.Float([2.0, 3.0]), mi.Float([3.5, 4.5]), mi.Float([5.0, 6.0]), mi.Float([-1.0, -1.0])]
         out = VSRDSilhouetteIntegrator._kink_minima(sdf, kinks)
     assert len(out) == KINK_MINIMA == 2
-    np.testing.assert_allclose(np.stack([np.array(t) for t, _ in out]), [[2.0, 3.0], [5.0, 6.0]])
-    np.testing.assert_allclose(np.stack([np.array(v) for _, v in out]), [[0.0, 0.0], [0.15, 0.15]], atol=1e-6)
+    np.testing.assert_allclose(np.stack([np.array(t) for t, _, _ in out]), [[2.0, 3.0], [5.0, 6.0]])
+    np.testing.assert_allclose(np.stack([np.array(v) for _, v, _ in out]), [[0.0, 0.0], [0.15, 0.15]], atol=1e-6)
+    # the envelope weight of the face before each kink: slopes -1 | 0.2 and -0.6 | 0.4
+    np.testing.assert_allclose(np.stack([np.array(w) for _, _, w in out]), [[0.2 / 1.2] * 2, [0.4 / 1.0] * 2],
+                               atol=1e-3)
 
 
 def test_kink_minima_find_the_minimum_beside_a_sharp_bend():
@@ -995,6 +998,7 @@ def test_kink_minima_find_the_minimum_beside_a_sharp_bend():
         bends = ([mi.Float([3.0, 3.0])] + [none] * 5, [mi.Float([rho, 0.3])] + [mi.Float([1.0, 1.0])] * 5)
         out = VSRDSilhouetteIntegrator._kink_minima(sdf, [none], bends, 0.25)
     first, value = np.array(out[0][0]), np.array(out[0][1])
+    assert np.all(np.array(out[0][2]) == -1.0)  # beside a bend F is smooth: no envelope
     assert abs(first[0] - t_min) <= 1e-4, (first, t_min)
     assert abs(value[0] - (np.sqrt(rho * rho + (t_min - 3.0) ** 2) - g * (t_min - 3.0))) <= 1e-6, value
     assert first[1] == -1.0 and np.all(np.array(out[1][0]) == -1.0), out
