@@ -729,7 +729,10 @@ class ResidualField:
     def _evaluate_padded(self, weights: mi.TensorXf, k: int, points: mi.Vector3f) -> mi.Float:
         """``R_k`` at ``points``, padded to :func:`bucket_width` (the MLP as tensor matmuls)."""
         n = dr.width(points.x)
-        width = bucket_width(n)
+        # at least one padding lane: with none, the final gather of the n values is an identity
+        # that Dr.Jit elides, fusing the output into its consumer: other kernels whenever a
+        # group's count is exactly a power of two (a compile in the middle of a run)
+        width = bucket_width(n + 1)
         coords = [concat([points[axis]], width) for axis in range(3)]
         feats = self.encode(mi.Vector3f(*coords))
         x = _tensor(dr.concat(feats), (1, len(feats), width))

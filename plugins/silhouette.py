@@ -592,17 +592,18 @@ def pick(values: list[mi.Float], i: mi.UInt32) -> mi.Float:
 
 
 def compress_wide(mask: mi.Bool) -> tuple[mi.UInt32, mi.Bool]:
-    """``dr.compress(mask)`` padded to at least two lanes (copies of the first index, or index
-    0 where ``mask`` holds nowhere), and which lanes are real. Arrays of width 1 read as
-    scalars, whose values Dr.Jit bakes into kernels as literals (each new value compiled them
-    anew), and a pass that runs only where some lane needs it compiles its kernels at the
-    first such call, deep into an optimisation: padded, it runs every call."""
-    idx = dr.compress(mask)
-    n = dr.width(idx)
-    if n < 2:  # evaluated either way, and the count opaque: the same kernels for any count
-        idx = dr.gather(mi.UInt32, idx, dr.zeros(mi.UInt32, 2)) if n else dr.zeros(mi.UInt32, 2)
-        dr.make_opaque(idx)
-    return idx, dr.arange(mi.UInt32, dr.width(idx)) < dr.opaque(mi.UInt32, n)
+    """``dr.compress(mask)`` and two padding lanes after it (index clamped into ``mask``), and
+    which lanes are real. Arrays of width 1 read as scalars, whose values Dr.Jit bakes into
+    kernels as literals (each new value compiled them anew), and a pass that runs only where
+    some lane needs it, or a padding done only for few lanes, compiles its kernels at the first
+    such call, deep into an optimisation: this runs the same kernels for any count."""
+    n = dr.width(mask)
+    no = dr.opaque(mi.UInt32, n)
+    ext = dr.zeros(mi.Bool, n + 2)
+    dr.scatter(ext, mask, dr.arange(mi.UInt32, n))
+    dr.scatter(ext, True, dr.arange(mi.UInt32, 2) + no)
+    idx = dr.compress(ext)
+    return dr.minimum(idx, no - 1), idx < no
 
 
 def count_prefix(n: int, value, before) -> mi.UInt32:
