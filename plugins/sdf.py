@@ -392,27 +392,20 @@ def ridge_faces(p: mi.Vector3f, d: mi.Vector3f, half: mi.Vector3f, tol: float | 
         v = face_planes(p, half)
         m = dr.maximum(dr.maximum(dr.maximum(v[0], v[1]), dr.maximum(v[2], v[3])), dr.maximum(v[4], v[5]))
         slopes = [d[i] for i in range(3)] + [-d[i] for i in range(3)]
+        # the near faces of the least and the greatest slope: at a ridge the steepest decreasing
+        # and increasing one, at a kink the envelope before and after it
         ia, ib = mi.UInt32(6), mi.UInt32(6)
-        ga, gb = mi.Float(0.0), mi.Float(0.0)
+        ga, gb = mi.Float(dr.inf), mi.Float(-dr.inf)
         for j in range(6):
             near = (m - v[j]) <= tol
-            dec_j = near & (slopes[j] < ga)
-            inc_j = near & (slopes[j] > gb)
-            ia, ga = dr.select(dec_j, j, ia), dr.select(dec_j, slopes[j], ga)
-            ib, gb = dr.select(inc_j, j, ib), dr.select(inc_j, slopes[j], gb)
-        ridge = (m < 0.0) & (ia < 6) & (ib < 6)
+            lo_j, hi_j = near & (slopes[j] < ga), near & (slopes[j] > gb)
+            ia, ga = dr.select(lo_j, j, ia), dr.select(lo_j, slopes[j], ga)
+            ib, gb = dr.select(hi_j, j, ib), dr.select(hi_j, slopes[j], gb)
+        ridge = (m < 0.0) & (ga < 0.0) & (gb > 0.0)
         lam = envelope_weight(dr.select(ridge, ga, -1.0), dr.select(ridge, gb, 1.0))
         if kink_lam is not None:
-            ka, kb = mi.UInt32(6), mi.UInt32(6)
-            gka, gkb = mi.Float(dr.inf), mi.Float(-dr.inf)
-            for j in range(6):
-                near = (m - v[j]) <= tol
-                lo_j, hi_j = near & (slopes[j] < gka), near & (slopes[j] > gkb)
-                ka, gka = dr.select(lo_j, j, ka), dr.select(lo_j, slopes[j], gka)
-                kb, gkb = dr.select(hi_j, j, kb), dr.select(hi_j, slopes[j], gkb)
             kink = kink_lam >= 0.0
-            ia, ib = dr.select(kink, ka, ia), dr.select(kink, kb, ib)
-            ridge = dr.select(kink, (m < 0.0) & (ka < 6) & (kb < 6) & (gka < gkb), ridge)
+            ridge = dr.select(kink, (m < 0.0) & (ga < gb), ridge)
             lam = dr.select(kink, kink_lam, lam)
     return ridge, ia, ib, lam
 

@@ -598,6 +598,13 @@ def pick(values: list[mi.Float], i: mi.UInt32) -> mi.Float:
     return out
 
 
+def block_of(values: mi.Float, b: int, n: int) -> mi.Float:
+    """Block ``b`` of ``n`` lanes of a block-major array (a slot of the (slot, ray) pairs, a
+    candidate of :meth:`VSRDSilhouetteIntegrator._kink_minima`); the offset is opaque, as ``n``
+    changes every call."""
+    return dr.gather(type(values), values, dr.arange(mi.UInt32, n) + dr.opaque(mi.UInt32, b * n))
+
+
 def compress_wide(mask: mi.Bool) -> tuple[mi.UInt32, mi.Bool]:
     """``dr.compress(mask)`` and two padding lanes after it (index clamped into ``mask``), and
     which lanes are real. Arrays of width 1 read as scalars, whose values Dr.Jit bakes into
@@ -812,7 +819,7 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         # SDF (and the residual MLP) is evaluated in one batch
         with dr.suspend_grad():
             ray_lanes, ts, insts, deep, pairs = [], [], [], [], []
-            ray_lams = []
+            kink_lams = []  # per lane, as deep: a kink's own weight (-1: none)
             for rays, t, m, _, slot_inst, deepest, _, own, rows, kink_lam in groups:
                 r = dr.arange(mi.UInt32, dr.width(t)) // m
                 ray_of = dr.gather(mi.UInt32, rays, r)
@@ -827,14 +834,14 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
                         inst_own = dr.select(own == b, dr.gather(mi.UInt32, ib, r), inst_own)
                     insts.append(inst_own)
                     deep.append(dr.select(deepest == own, 1, 0))
-                    ray_lams.append(dr.full(mi.Float, -1.0, dr.width(t)))
+                    kink_lams.append(dr.full(mi.Float, -1.0, dr.width(t)))
                     continue
                 for b, ib in enumerate(slot_inst):
                     ray_lanes.append(ray_of)
                     ts.append(t)
                     insts.append(dr.gather(mi.UInt32, ib, r))
                     deep.append(dr.select(deepest == b, 1, 0))
-                    ray_lams.append(dr.select(deepest == b, kink_lam, -1.0))
+                    kink_lams.append(dr.select(deepest == b, kink_lam, -1.0))
             ray_all = concat(ray_lanes)
             s_all = concat(ts)
             p_all, t_all, d_all = self._positions(ray_all, o, d, time, s_all, 1)
@@ -845,7 +852,7 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
             ridge = None
             if self.cfg.ridge_gradients and dr.width(deep):
                 ridge = (deep, dr.gather(mi.Vector3f, d_all, deep), RIDGE_TOLERANCE,
-                         dr.gather(mi.Float, concat(ray_lams), deep))
+                         dr.gather(mi.Float, concat(kink_lams), deep))
         # beyond the culling margin of its box a lane's SDF cannot move the integral by more
         # than exp(-reach) (see _cull_margin): its value is kept, its gradient dropped
         weights = self.field.residual_weights()
@@ -1367,10 +1374,8 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
                 bends = box_ray_bends(*views, dr.select(valid, concat([pk.entry for pk in picked]), 0.0),
                                       dr.select(valid, concat([pk.exit for pk in picked]), -1.0))
                 minima = self._kink_minima(sdf, kinks, bends, 1.0 / self._residual_omega())
-                no = dr.opaque(mi.UInt32, dr.width(count))
                 slots = [replace(sl, moved=tuple(x for part in parts for x in part),
-                                 kinks=tuple(dr.gather(mi.Float, x, dr.arange(mi.UInt32, dr.width(count)) + no * b)
-                                             for t, _, lam in minima for x in (t, lam)))
+                                 kinks=tuple(block_of(x, b, dr.width(count)) for t, _, lam in minima for x in (t, lam)))
                          for b, (sl, parts) in enumerate(zip(slots, zip(*self._snapped_slots(sdf, slots, minima))))]
             isolated = self._isolated(picked, count)
             dr.eval(count, slots, slot_inst, slot_hit, isolated)
@@ -1537,11 +1542,8 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         dr.scatter(flat[0], t, idx, ok)
         dr.scatter(flat[2], lam, idx, ok)
         dr.eval(flat[0], flat[2])
-        out = []
-        for b, pk in enumerate(peaks[:-1]):
-            at = dr.arange(mi.UInt32, n) + dr.opaque(mi.UInt32, b * n)
-            out.append(pk._replace(t=dr.gather(mi.Float, flat[0], at), lam=dr.gather(mi.Float, flat[2], at)))
-        return out + peaks[-1:]
+        return [pk._replace(t=block_of(flat[0], b, n), lam=block_of(flat[2], b, n))
+                for b, pk in enumerate(peaks[:-1])] + peaks[-1:]
 
     def _slot_view(self, views, kb: mi.UInt32) -> tuple:
         """Per ray the box-local ``(origin, direction, half)`` of instance ``kb`` (``views`` per
@@ -1642,10 +1644,7 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
                                KINK_GOLDEN, sdf.traceable, "vsrd_kink_golden")
         dr.scatter(found, t_min, dr.gather(mi.UInt32, live, smooth), real)
         dr.scatter(value, sdf.at(pc, t_min), dr.gather(mi.UInt32, live, smooth), real)
-        cands = [dr.gather(mi.Float, found, dr.arange(mi.UInt32, n_pairs) + dr.opaque(mi.UInt32, c * n_pairs))
-                 for c in range(len(ts))]
-        values, weights = ([dr.gather(mi.Float, x, dr.arange(mi.UInt32, n_pairs) + dr.opaque(mi.UInt32, c * n_pairs))
-                            for c in range(len(ts))] for x in (value, weight))
+        cands, values, weights = ([block_of(x, c, n_pairs) for c in range(len(ts))] for x in (found, value, weight))
         out, low = [], mi.Float(-1.0)
         for _ in range(KINK_MINIMA):  # the least minima in order
             nxt, f_nxt, w_nxt = mi.Float(dr.inf), mi.Float(0.0), mi.Float(-1.0)
@@ -1909,8 +1908,7 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         # every moved position in one kernel (the per-slot gathers below would evaluate each
         # alone, re-reading the scan values once per position)
         dr.eval(pos)
-        no = dr.opaque(mi.UInt32, n)
-        return [[dr.gather(mi.Float, p, dr.arange(mi.UInt32, n) + no * s_) for p in pos] for s_ in range(n_slots)]
+        return [[block_of(p, s_, n) for p in pos] for s_ in range(n_slots)]
 
     def _residual_minima(self, sdf, slot_views, count, picked: list[Picked]) -> list[mi.Float]:
         """Per slot, where the instance SDF ``F = B + R`` is least along the ray (detached;
@@ -1962,8 +1960,7 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
                 dr.eval(state)
             f_min = dr.minimum(state[4], state[5])
             t_min = dr.select(f_min < best_v, golden_argmin(state), t_min)
-        return [dr.gather(mi.Float, t_min, dr.arange(mi.UInt32, n) + dr.opaque(mi.UInt32, b_ * n))
-                for b_ in range(n_slots)]
+        return [block_of(t_min, b_, n) for b_ in range(n_slots)]
 
     @staticmethod
     def _halves(kk: int) -> tuple[int, int]:
