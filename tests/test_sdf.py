@@ -221,12 +221,13 @@ def lane_setup(rng, n_inst: int, n_lanes: int, residual: bool):
     return field, vec(p), mi.Float(t.astype(np.float32)), mi.UInt32(inst.astype(np.uint32))
 
 
-@pytest.mark.parametrize("residual", [False, True])
-def test_lane_sdfs_closed_form_gradient_matches_ad(residual):
+@pytest.mark.parametrize("residual, kinks", [(False, False), (True, False), (False, True)])
+def test_lane_sdfs_closed_form_gradient_matches_ad(residual, kinks):
     """lane_sdfs with grad_reach (closed-form box gradient on the lanes near their box, summed
     in runs, the envelope gradient at ridge lanes) gives the same values and reverse- and
     forward-mode gradients as AD of the plain per-lane SDF with the far lanes detached plus the
-    AD ridge correction."""
+    AD ridge correction; with ``kinks``, half the ridge lanes carry a kink's own weight
+    (``ridge[3]``, :func:`ridge_faces`), which both paths must blend alike."""
     rng = np.random.default_rng(13)
     field, p, t, inst = lane_setup(rng, 5, 3001, residual)
     reach, grad_reach = 0.5, 0.3
@@ -257,6 +258,10 @@ def test_lane_sdfs_closed_form_gradient_matches_ad(residual):
     lanes = mi.UInt32(interior.astype(np.uint32))
     dirs = rng.normal(size=(len(interior), 3))
     ridge = (lanes, vec(dirs / np.linalg.norm(dirs, axis=1, keepdims=True)), 0.5)
+    if kinks:
+        lam = rng.uniform(0.0, 1.0, len(interior))
+        lam[::2] = -1.0
+        ridge = (*ridge, mi.Float(lam.astype(np.float32)))
 
     def closed(dec, weights):
         return field.lane_sdfs(dec, p, t, inst, weights, reach=reach, ridge=ridge, grad_reach=grad_reach)
