@@ -43,11 +43,14 @@ the paper's softplus: it bounds the residual's reach by ``r_max``, which is what
 integrators cull instances with a box enlarged by a known margin. ``shift`` (default 3) starts
 the residual near ``0.05 r_max`` so switching the field on does not shrink every silhouette.
 
-The MLPs run in Dr.Jit *tensor mode* (batched GEMM kernels), not cooperative vectors: a coop
-matvec uses one weight matrix per kernel, and DRJIT.md measured tensor-mode backward 2-3x faster
-on x86 (atomics-bound coop backward). Points are grouped per instance and the residual is only
-evaluated where it can change the result (inside the instance's box enlarged by the caller's
-reach), see :meth:`InstanceField.instance_sdfs`.
+On the LLVM backend each instance's MLP runs as one fused kernel of cooperative-vector matvecs;
+where a gradient is needed its derivatives are written out (:class:`_FusedResidual`: one kernel
+for the adjoints, a GEMM per layer for the weight gradient), because a coop matvec uses one
+weight matrix per kernel and Dr.Jit's own coop backward accumulates weight gradients with atomics
+(DRJIT.md: 2-3x slower than tensor mode on x86). Dr.Jit AD through *tensor-mode* batched GEMMs is
+the reference and the path on other backends (``ResidualConfig.gradients``). Points are grouped
+per instance and the residual is only evaluated where it can change the result (inside the
+instance's box enlarged by the caller's reach), see :meth:`InstanceField.instance_sdfs`.
 
 Scene SDF and labels
 --------------------
@@ -65,6 +68,7 @@ from typing import Iterator, Sequence
 
 import drjit as dr
 import drjit.nn as nn
+from drjit.auto.ad import ArrayXf
 import mitsuba as mi
 import numpy as np
 
@@ -86,6 +90,12 @@ def sigmoid(x):
 
 #: ``2 sqrt(2 / pi)``: GELU's tanh approximation written with the logistic function.
 GELU_SCALE = 1.5957691216057308
+#: The cubic coefficient of GELU's tanh approximation.
+GELU_CUBIC = 0.044715
+
+
+def _gelu_gate(x):
+    return sigmoid(GELU_SCALE * dr.fma(GELU_CUBIC * x, x * x, x))
 
 
 def gelu(x):
@@ -93,7 +103,14 @@ def gelu(x):
     ``0.5 x (1 + tanh(sqrt(2/pi) (x + 0.044715 x^3)))``, evaluated as the identical
     ``x sigmoid(2 sqrt(2/pi) (x + 0.044715 x^3))`` (``(1 + tanh z) / 2 = sigmoid(2 z)``): one
     ``exp`` instead of ``tanh``'s longer sequence; the fused residual MLP ran 1.1x faster."""
-    return x * sigmoid(GELU_SCALE * dr.fma(0.044715 * x, x * x, x))
+    return x * _gelu_gate(x)
+
+
+def gelu_and_slope(x):
+    """:func:`gelu` and its derivative ``g + x g (1 - g) 2 sqrt(2/pi) (1 + 3 0.044715 x^2)``
+    (``g`` the sigmoid gate), for hand-written derivatives (:class:`_FusedResidual`)."""
+    g = _gelu_gate(x)
+    return x * g, g + x * g * (1.0 - g) * GELU_SCALE * dr.fma(3.0 * GELU_CUBIC, x * x, 1.0)
 
 
 def logit_np(p: np.ndarray, eps: float = 1e-6) -> np.ndarray:
@@ -472,6 +489,11 @@ class ResidualConfig:
     max_residual: float = 1.0  # r_max (metres)
     shift: float = 3.0  # residual = r_max * sigmoid(g - shift)
     seed: int = 0
+    #: How gradients reach the MLP's inputs and weights: ``"fused"`` (:class:`_FusedResidual`: the
+    #: forward pass one cooperative-vector kernel, the backward pass one kernel plus a GEMM per
+    #: layer for the weights; LLVM only, other backends use ``"tensor"``) or ``"tensor"`` (Dr.Jit
+    #: AD through tensor-mode matmuls, the reference the fused derivatives are tested against).
+    gradients: str = "fused"
 
     @property
     def in_features(self) -> int:
@@ -516,10 +538,25 @@ def layer_norm(values: list[mi.Float], eps: float = LAYER_NORM_EPS) -> list[mi.F
     """Parameter-free layer norm of one feature vector per lane (a list of feature arrays); the
     per-lane form of :func:`_layer_norm_features` (``test_residual_fused_forward_matches_tensor_mode``
     checks they agree)."""
+    return layer_norm_and_scale(values, eps)[0]
+
+
+def layer_norm_and_scale(values: list[mi.Float], eps: float = LAYER_NORM_EPS) -> tuple[list[mi.Float], mi.Float]:
+    """:func:`layer_norm` and its per-lane scale ``1 / sqrt(var + eps)``."""
     mean = sum(values) * (1.0 / len(values))
     centred = [v - mean for v in values]
     inv = dr.rsqrt(sum(c * c for c in centred) * (1.0 / len(values)) + eps)
-    return [c * inv for c in centred]
+    return [c * inv for c in centred], inv
+
+
+def layer_norm_derivative(normed: list[mi.Float], inv: mi.Float, dx: list[mi.Float]) -> list[mi.Float]:
+    """The derivative of :func:`layer_norm` (output ``normed``, scale ``inv``) applied to ``dx``:
+    ``inv (dx - mean(dx) - y mean(dx y))``. The Jacobian is symmetric, so this is both the
+    forward (tangent) and the backward (adjoint) map."""
+    k = 1.0 / len(dx)
+    m1 = sum(dx) * k
+    m2 = sum(a * y for a, y in zip(dx, normed)) * k
+    return [inv * (a - m1 - y * m2) for a, y in zip(dx, normed)]
 
 
 def _layer_norm_features(x: mi.TensorXf, eps: float = LAYER_NORM_EPS) -> mi.TensorXf:
@@ -671,23 +708,26 @@ class ResidualField:
     def evaluate_grouped(self, weights: mi.TensorXf, instances: Sequence[int],
                          points: Sequence[mi.Vector3f]) -> list[mi.Float]:
         """Residuals ``R_k`` of several instances (group ``g``: box-local points ``points[g]`` of
-        instance ``instances[g]``), each group zero-padded to its own :func:`bucket_width` ``P``
-        and run as matmuls ``(out, in) @ (in, P)`` per layer (:meth:`_evaluate_padded`).
+        instance ``instances[g]``).
 
-        Kernel shapes depend only on ``P``, so a training loop compiles each layer once per
-        bucket instead of once per step and instance (the point counts change every step).
-        Padding every group to the largest group's bucket in one batched matmul evaluated 2.3x
-        the points on the integrator benchmark (6 boxes, residual on); per group 1.1x.
-
-        Where nothing needs a gradient (detached searches and scans, hard renders) on the LLVM
-        backend, each group runs instead as one fused kernel of cooperative-vector matvecs
-        (:meth:`_evaluate_coop`): 1M points 0.084 s instead of 0.340 s (tensor mode writes and
-        reads every layer's activations), same values to 1e-7.
+        On the LLVM backend each group is one fused kernel of cooperative-vector matvecs
+        (:meth:`_evaluate_coop`: 1M points 0.084 s instead of 0.340 s in tensor mode, which writes
+        and reads every layer's activations); where the weights or the points need a gradient it
+        runs inside :class:`_FusedResidual`, whose backward pass is written out (a coop matvec
+        uses one weight matrix per kernel, and Dr.Jit's own coop backward accumulates the weight
+        gradient with atomics: DRJIT.md measured it 2-3x slower than tensor mode). Elsewhere,
+        or with ``gradients="tensor"``, each group runs as tensor-mode matmuls
+        (:meth:`_evaluate_padded`).
         """
-        coop = (dr.backend_v(weights.array) == dr.JitBackend.LLVM and not dr.grad_enabled(weights)
-                and not any(dr.grad_enabled(p) for p in points))
-        evaluate = self._evaluate_coop if coop else self._evaluate_padded
-        return [evaluate(weights, k, p) for k, p in zip(instances, points)]
+        llvm = dr.backend_v(weights.array) == dr.JitBackend.LLVM
+        needs_grad = dr.grad_enabled(weights) or any(dr.grad_enabled(p) for p in points)
+        if not llvm or (needs_grad and self.cfg.gradients == "tensor"):
+            return [self._evaluate_padded(weights, k, p) for k, p in zip(instances, points)]
+        if not needs_grad:
+            return [self._evaluate_coop(weights, k, p) for k, p in zip(instances, points)]
+        want_w = dr.grad_enabled(weights)
+        return [dr.custom(_FusedResidual, weights, p, self, k, (want_w, dr.grad_enabled(p)))
+                for k, p in zip(instances, points)]
 
     def _layers(self, weights: mi.TensorXf, k: int) -> Iterator[tuple[int, int, mi.Float, mi.Float]]:
         """``(out, in, W, b)`` per layer of instance ``k``'s MLP (``W`` row-major), gathered from the
@@ -703,24 +743,79 @@ class ResidualField:
         """``R = r_max sigmoid(g - shift)`` from the MLP's output ``g``."""
         return self.cfg.max_residual * sigmoid(g - self.cfg.shift)
 
+    def instance_params(self, weights: mi.TensorXf, k: int) -> mi.TensorXf:
+        """Instance ``k``'s column of the ``(num_mlp_params, N)`` weights: its MLP's parameters,
+        per layer the row-major weights then the bias (:meth:`ResidualConfig.mlp_layout`)."""
+        n_params = self.cfg.num_mlp_params
+        return _tensor(dr.gather(mi.Float, weights.array, dr.arange(mi.UInt32, n_params) * self.n
+                                 + dr.opaque(mi.UInt32, k)), (n_params,))
+
+    def trace(self, params: mi.TensorXf, feats: list[mi.Float]) -> tuple[list, list[tuple], mi.Float]:
+        """The MLP ``G`` on encoded ``feats`` with instance parameters ``params`` (cooperative
+        vectors), with what its derivatives need: per layer its input (a list of feature
+        arrays), per hidden layer ``(normed, gelu slope, layer-norm scale)``, and the output ``g``."""
+        layout = self.cfg.mlp_layout()
+        inputs, hidden = [list(feats)], []
+        for i, (o, fi, w_at, b_at) in enumerate(layout):
+            z = list(nn.matvec(_row_major_view(params, w_at, o, fi), nn.CoopVec(*inputs[-1]),
+                               _row_major_view(params, b_at, o, 1)))
+            if i == len(layout) - 1:
+                return inputs, hidden, z[0]
+            normed, inv = layer_norm_and_scale(z)
+            act = [gelu_and_slope(v) for v in normed]
+            hidden.append((normed, [a[1] for a in act], inv))
+            inputs.append([a[0] for a in act])
+        raise AssertionError("the MLP has an output layer")
+
     def _evaluate_coop(self, weights: mi.TensorXf, k: int, points: mi.Vector3f) -> mi.Float:
         """``R_k`` at ``points`` as one fused kernel (``drjit.nn`` cooperative vectors; primal
         only). Instance ``k``'s parameters are gathered into one row-major vector and each
         layer's weight matrix and bias are views into it (``nn.pack`` copied every layer in a
         kernel of its own: 17 kernels per call instead of 3, same values)."""
-        n_params = self.cfg.num_mlp_params
-        params = _tensor(dr.gather(mi.Float, weights.array, dr.arange(mi.UInt32, n_params) * self.n
-                                   + dr.opaque(mi.UInt32, k)), (n_params,))
-        x = nn.CoopVec(*self.encode(points))
-        layout = self.cfg.mlp_layout()
-        for i, (o, fi, w_at, b_at) in enumerate(layout):
-            x = nn.matvec(_row_major_view(params, w_at, o, fi), x, _row_major_view(params, b_at, o, 1))
-            if i < len(layout) - 1:
-                x = nn.CoopVec(*[gelu(v) for v in layer_norm(list(x))])
-        return self._output(list(x)[0])
+        return self._output(self.trace(self.instance_params(weights, k), self.encode(points))[2])
+
+    def encoding_tangent(self, feats: list[mi.Float], p_local: mi.Vector3f,
+                         dp: mi.Vector3f) -> list[mi.Float]:
+        """The derivative of :meth:`encode` (values ``feats`` at ``p_local``) along ``dp``:
+        ``d sin(w u) = w cos(w u) du``, ``d cos(w u) = -w sin(w u) du``, ``w = 2^k pi``,
+        ``u`` the scaled (mirrored) coordinate."""
+        du = self._coordinate_scales(p_local)
+        out = []
+        for a, d in enumerate((dp.x, dp.y, dp.z)):
+            for kf, w in enumerate(self._frequencies()):
+                s, c = feats[2 * (a * self.cfg.frequencies + kf): 2 * (a * self.cfg.frequencies + kf) + 2]
+                out += [w * c * (du[a] * d), -w * s * (du[a] * d)]
+        return out
+
+    def encoding_adjoint(self, feats: list[mi.Float], p_local: mi.Vector3f,
+                         dfeats: list[mi.Float]) -> mi.Vector3f:
+        """The transpose of :meth:`encoding_tangent`: the gradient w.r.t. ``p_local`` of
+        ``sum_j dfeats[j] feats[j]``."""
+        du = self._coordinate_scales(p_local)
+        out = []
+        for a in range(3):
+            acc = mi.Float(0.0)
+            for kf, w in enumerate(self._frequencies()):
+                j = 2 * (a * self.cfg.frequencies + kf)
+                acc = dr.fma(w, dfeats[j] * feats[j + 1] - dfeats[j + 1] * feats[j], acc)
+            out.append(acc * du[a])
+        return mi.Vector3f(*out)
+
+    def _frequencies(self) -> list[float]:
+        return [math.pi * 2.0 ** kf for kf in range(self.cfg.frequencies)]
+
+    def _coordinate_scales(self, p_local: mi.Vector3f) -> list:
+        """``du/dp`` per axis of the encoded coordinates (x mirrored: its sign)."""
+        scale = self.cfg.input_scale
+        return [dr.select(p_local.x < 0.0, -scale, scale), scale, scale]
 
     def _evaluate_padded(self, weights: mi.TensorXf, k: int, points: mi.Vector3f) -> mi.Float:
-        """``R_k`` at ``points``, padded to :func:`bucket_width` (the MLP as tensor matmuls)."""
+        """``R_k`` at ``points``, padded to :func:`bucket_width`, the MLP as tensor matmuls (Dr.Jit
+        AD differentiates it: the ``gradients="tensor"`` path and the reference of
+        :class:`_FusedResidual`'s derivatives).
+
+        Kernel shapes depend only on the bucket, so a training loop compiles each layer once per
+        bucket instead of once per step and instance (the point counts change every step)."""
         n = dr.width(points.x)
         # at least one padding lane: with none, the final gather of the n values is an identity
         # that Dr.Jit elides, fusing the output into its consumer: other kernels whenever a
@@ -736,6 +831,99 @@ class ResidualField:
                 x = gelu(_layer_norm_features(x))
         return dr.gather(mi.Float, self._output(x.array), dr.arange(mi.UInt32, n))
 
+
+
+class _FusedResidual(dr.CustomOp):
+    r"""``R_k`` at box-local points with hand-written derivatives (:meth:`ResidualField.evaluate_grouped`
+    on LLVM where a gradient is needed).
+
+    Inputs: the hypernetwork's ``(num_mlp_params, N)`` weights, the points ``p`` (either may carry
+    gradients), the field, the instance ``k`` and which of the two carry gradients. The value is :meth:`ResidualField._evaluate_coop`.
+    With the MLP ``z_l = W_l a_{l-1} + b_l``, ``a_l = gelu(LN(z_l))`` (``a_0`` the encoding of
+    ``p``), ``R = r_max sigmoid(z_L - shift)``, the backward pass is one kernel per call that
+    recomputes the layers and runs the adjoints down them,
+
+    .. math::
+
+        \delta z_L = \delta R\, r_{max}\, \sigma (1 - \sigma), \quad
+        \delta a_{l-1} = W_l^\top \delta z_l, \quad
+        \delta z_{l-1} = LN'(gelu'(n_{l-1}) \odot \delta a_{l-1}),
+
+    writing ``a_{l-1}`` and ``\delta z_l`` (feature-major) and ``\delta p`` (the encoding's
+    adjoint); the weight gradient is then a GEMM per layer,
+    ``dW_l = \delta Z_l A_{l-1}^\top``, ``db_l = \delta Z_l 1``, scattered into column ``k``.
+    The forward (tangent) pass is the same recursion upwards:
+    ``\dot z_l = W_l \dot a_{l-1} + \dot W_l a_{l-1} + \dot b_l``.
+
+    Tensor-mode AD of the same MLP (:meth:`ResidualField._evaluate_padded`) writes and reads
+    every layer's activations in kernels of their own and pads each group to a bucket: on 6 x
+    14k points (the integrator benchmark's adaptive step) forward + backward took 0.28 s in
+    tensor mode and 0.09 s here, hypernetwork included; gradients agree to 1e-6
+    (``test_fused_residual_derivatives_match_tensor_mode``).
+    """
+
+    def eval(self, weights, points, field, k, wants):
+        # the inputs arrive detached: ``wants`` says which of them carry a gradient
+        self.weights, self.points, self.field, self.k, self.wants = weights, points, field, k, wants
+        return field._evaluate_coop(weights, k, points)
+
+    def forward(self):
+        f = self.field
+        params = f.instance_params(self.weights, self.k)
+        tangent = f.instance_params(self.grad_in("weights"), self.k)
+        feats = f.encode(self.points)
+        inputs, hidden, g = f.trace(params, feats)
+        dx = f.encoding_tangent(feats, self.points, mi.Vector3f(self.grad_in("points")))
+        for i, ((o, fi, w_at, b_at), x) in enumerate(zip(f.cfg.mlp_layout(), inputs)):
+            dz = [a + b for a, b in zip(nn.matvec(_row_major_view(params, w_at, o, fi), nn.CoopVec(*dx)),
+                                        nn.matvec(_row_major_view(tangent, w_at, o, fi), nn.CoopVec(*x),
+                                                  _row_major_view(tangent, b_at, o, 1)))]
+            if i < len(hidden):
+                normed, slope, inv = hidden[i]
+                dx = [sl * d for sl, d in zip(slope, layer_norm_derivative(normed, inv, dz))]
+        sg = sigmoid(g - f.cfg.shift)
+        self.set_grad_out(f.cfg.max_residual * sg * (1.0 - sg) * dz[0])
+
+    def backward(self):
+        f = self.field
+        n_points = dr.width(self.points.x)
+        want_w, want_p = self.wants
+        params = f.instance_params(self.weights, self.k)
+        feats = f.encode(self.points)
+        inputs, hidden, g = f.trace(params, feats)
+        sg = sigmoid(g - f.cfg.shift)
+        dz = [self.grad_out() * (f.cfg.max_residual * sg * (1.0 - sg))]
+        layout = f.cfg.mlp_layout()
+        deltas = [None] * len(layout)
+        for i in range(len(layout) - 1, -1, -1):
+            o, fi, w_at, _ = layout[i]
+            deltas[i] = dz
+            da = list(nn.matvec(_row_major_view(params, w_at, o, fi), nn.CoopVec(*dz), transpose=True))
+            if i > 0:
+                normed, slope, inv = hidden[i - 1]
+                dz = layer_norm_derivative(normed, inv, [sl * a for sl, a in zip(slope, da)])
+        dp = f.encoding_adjoint(feats, self.points, da) if want_p else None
+        if want_w and n_points:
+            # feature-major (features, points) tables in the same kernel as dp (dr.ravel: one
+            # kernel, sizes opaque; scatters into one buffer ran one kernel each)
+            a_tab = [dr.ravel(ArrayXf(x), order="C") for x in inputs]
+            d_tab = [dr.ravel(ArrayXf(d), order="C") for d in deltas]
+            dr.eval(a_tab, d_tab, dp)
+            grad = dr.zeros(mi.Float, f.cfg.num_mlp_params)
+            for (o, fi, w_at, b_at), a, d in zip(layout, a_tab, d_tab):
+                d = _tensor(d, (o, n_points))
+                dr.scatter(grad, dr.matmul(d, _tensor(a, (fi, n_points)), Bt=True).array,
+                           w_at + dr.arange(mi.UInt32, o * fi))
+                dr.scatter(grad, dr.sum(d, axis=1).array, b_at + dr.arange(mi.UInt32, o))
+            column = dr.zeros(mi.Float, f.cfg.num_mlp_params * f.n)
+            dr.scatter(column, grad, dr.arange(mi.UInt32, f.cfg.num_mlp_params) * f.n
+                       + dr.opaque(mi.UInt32, self.k))
+            self.set_grad_in("weights", _tensor(column, self.weights.shape))
+        if want_p:
+            self.set_grad_in("points", dp)
+
+    def name(self):
+        return "FusedResidual"
 
 
 def catmull_rom_weights(f: mi.Float) -> list[mi.Float]:
@@ -948,7 +1136,8 @@ class InstanceField:
 
     Built from plugin properties (``num_instances``, ``centres``, ``sizes``, ``yaws``,
     ``velocities``, ``dynamic``, optional ranges ``half_lo``/``half_hi``/``centre_lo``/
-    ``centre_hi``, ``residual`` (bool), ``residual_seed``).
+    ``centre_hi``, ``residual`` (bool), ``residual_seed``, ``residual_shift``,
+    ``residual_gradients``: :attr:`ResidualConfig.gradients`).
     """
 
     PREFIX_BOX = "box_"
@@ -975,7 +1164,10 @@ class InstanceField:
         }
         self.use_residual = bool(props.get("residual", False))
         rcfg = ResidualConfig(seed=int(props.get("residual_seed", 0)),
-                              shift=float(props.get("residual_shift", ResidualConfig.shift)))
+                              shift=float(props.get("residual_shift", ResidualConfig.shift)),
+                              gradients=str(props.get("residual_gradients", ResidualConfig.gradients)))
+        if rcfg.gradients not in ("fused", "tensor"):
+            raise ValueError(f"vsrd plugin: residual_gradients must be 'fused' or 'tensor', got {rcfg.gradients!r}")
         self.residual = ResidualField(n, rcfg) if n else None
         self._weights = None
 

@@ -9,6 +9,11 @@ r"""Instance-aware NeuS silhouette integrator (``vsrd_silhouette``).
  * - residual
    - |bool|
    - Add the hypernetwork residual distance field to every box SDF. (Default: false)
+ * - residual_seed, residual_shift, residual_gradients
+   - |int|, |float|, |string|
+   - The residual field's initialisation seed and output shift, and how its gradients are
+     computed: ``fused`` (hand-written derivatives around one cooperative-vector kernel, LLVM) or
+     ``tensor`` (Dr.Jit AD through tensor-mode matmuls, the reference). (Default: 0, 3, fused)
  * - sampling
    - |string|
    - ``adaptive`` (default) or ``dense`` (paper-faithful reference, see below).
