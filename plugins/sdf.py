@@ -833,6 +833,13 @@ class ResidualField:
 
 
 
+def _weight_and_bias_index(o: int, fi: int, w_at: int, b_at: int) -> mi.UInt32:
+    """Where the entries of a layer's ``(o, fi + 1)`` matrix ``[W | b]`` sit in its MLP's
+    parameter vector (row-major weights at ``w_at``, the bias at ``b_at``)."""
+    i, j = np.divmod(np.arange(o * (fi + 1)), fi + 1)
+    return mi.UInt32(np.where(j < fi, w_at + i * fi + j, b_at + i).astype(np.uint32))
+
+
 class _FusedResidual(dr.CustomOp):
     r"""``R_k`` at box-local points with hand-written derivatives (:meth:`ResidualField.evaluate_grouped`
     on LLVM where a gradient is needed).
@@ -849,9 +856,9 @@ class _FusedResidual(dr.CustomOp):
         \delta a_{l-1} = W_l^\top \delta z_l, \quad
         \delta z_{l-1} = LN'(gelu'(n_{l-1}) \odot \delta a_{l-1}),
 
-    writing ``a_{l-1}`` and ``\delta z_l`` (feature-major) and ``\delta p`` (the encoding's
-    adjoint); the weight gradient is then a GEMM per layer,
-    ``dW_l = \delta Z_l A_{l-1}^\top``, ``db_l = \delta Z_l 1``, scattered into column ``k``.
+    writing ``a_{l-1}`` and ``\delta z_l`` (point-major tables ``A_{l-1}``, ``\Delta_l``) and
+    ``\delta p`` (the encoding's adjoint); the weight gradient is then a GEMM per layer,
+    ``[dW_l | db_l] = \Delta_l^\top [A_{l-1} | 1]``, scattered into column ``k``.
     The forward (tangent) pass is the same recursion upwards:
     ``\dot z_l = W_l \dot a_{l-1} + \dot W_l a_{l-1} + \dot b_l``.
 
@@ -904,17 +911,17 @@ class _FusedResidual(dr.CustomOp):
                 dz = layer_norm_derivative(normed, inv, [sl * a for sl, a in zip(slope, da)])
         dp = f.encoding_adjoint(feats, self.points, da) if want_p else None
         if want_w and n_points:
-            # feature-major (features, points) tables in the same kernel as dp (dr.ravel: one
-            # kernel, sizes opaque; scatters into one buffer ran one kernel each)
-            a_tab = [dr.ravel(ArrayXf(x), order="C") for x in inputs]
-            d_tab = [dr.ravel(ArrayXf(d), order="C") for d in deltas]
+            # point-major (points, features) tables in the same kernel as dp (dr.ravel, order
+            # "F": one kernel, the width opaque; order "C" bakes it in, scatters into one buffer
+            # ran one kernel each)
+            ones = dr.full(mi.Float, 1.0, n_points)  # a last input column: the bias gradient
+            a_tab = [dr.ravel(ArrayXf(x + [ones]), order="F") for x in inputs]
+            d_tab = [dr.ravel(ArrayXf(d), order="F") for d in deltas]
             dr.eval(a_tab, d_tab, dp)
             grad = dr.zeros(mi.Float, f.cfg.num_mlp_params)
             for (o, fi, w_at, b_at), a, d in zip(layout, a_tab, d_tab):
-                d = _tensor(d, (o, n_points))
-                dr.scatter(grad, dr.matmul(d, _tensor(a, (fi, n_points)), Bt=True).array,
-                           w_at + dr.arange(mi.UInt32, o * fi))
-                dr.scatter(grad, dr.sum(d, axis=1).array, b_at + dr.arange(mi.UInt32, o))
+                wb = dr.matmul(_tensor(d, (n_points, o)), _tensor(a, (n_points, fi + 1)), At=True)
+                dr.scatter(grad, wb.array, _weight_and_bias_index(o, fi, w_at, b_at))
             column = dr.zeros(mi.Float, f.cfg.num_mlp_params * f.n)
             dr.scatter(column, grad, dr.arange(mi.UInt32, f.cfg.num_mlp_params) * f.n
                        + dr.opaque(mi.UInt32, self.k))
