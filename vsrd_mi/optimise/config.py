@@ -229,6 +229,11 @@ class AutolabelConfig:
     #: does move them, but not closer: ``benchmarks/autolabel_paper_vs_default.json``). The ``paper`` preset
     #: and ``--set residual=true`` turn it on; the integrators support it either way.
     residual: bool = False
+    #: How the residual MLP's gradients are computed (the ``vsrd_silhouette`` plugin's
+    #: ``residual_gradients``): ``fused`` (hand-written derivatives around one cooperative-vector
+    #: kernel) or ``tensor`` (Dr.Jit AD through tensor-mode matmuls, the reference;
+    #: ``benchmarks/residual_gradients.py`` times both).
+    residual_gradients: str = "fused"
     velocity: bool = True
     #: Use the stereo attribute initialisation (else the documented default box, see
     #: :func:`vsrd_mi.scene.default_initial_boxes`).

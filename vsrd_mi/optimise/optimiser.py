@@ -148,7 +148,8 @@ class BoxOptimiser:
         boxes = [Box3D(b.centre, b.size, b.yaw, b.velocity if d else np.zeros(3), bool(d), b.instance_id)
                  for b, d in zip(boxes, self.dynamic)]
         integ = {**integrator_dict(boxes), "sampling": cfg.sampling, "band_samples": cfg.band_samples,
-                 "isolated_rays": cfg.isolated_rays, "residual": False, "residual_seed": cfg.seed}
+                 "isolated_rays": cfg.isolated_rays, "residual": False, "residual_seed": cfg.seed,
+                 "residual_gradients": cfg.residual_gradients}
         self.scene = mi.load_dict(scene_dict(obs, boxes, integrator=integ))
         self.integrator = self.scene.integrator()
         self.params = mi.traverse(self.scene)
