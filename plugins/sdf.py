@@ -630,6 +630,8 @@ class ResidualField:
             self.params[f"hyper_b{i}"] = mi.Float(np.zeros(fan_out, dtype=np.float32))
         self.num_hyper_layers = len(dims) - 1
         self._dims = dims
+        #: per MLP layer where its ``[W | b]`` entries go in the parameter vector (the fused backward pass)
+        self.weight_and_bias_index = [_weight_and_bias_index(o, fi, w_at, b_at) for o, fi, w_at, b_at in cfg.mlp_layout()]
 
     def generate_weights(self) -> mi.TensorXf:
         """Hypernetwork forward for all instances: a (num_mlp_params, N) tensor."""
@@ -837,7 +839,9 @@ def _weight_and_bias_index(o: int, fi: int, w_at: int, b_at: int) -> mi.UInt32:
     """Where the entries of a layer's ``(o, fi + 1)`` matrix ``[W | b]`` sit in its MLP's
     parameter vector (row-major weights at ``w_at``, the bias at ``b_at``)."""
     i, j = np.divmod(np.arange(o * (fi + 1)), fi + 1)
-    return mi.UInt32(np.where(j < fi, w_at + i * fi + j, b_at + i).astype(np.uint32))
+    index = mi.UInt32(np.where(j < fi, w_at + i * fi + j, b_at + i).tolist())  # from a list: aligned
+    dr.make_opaque(index)
+    return index
 
 
 class _FusedResidual(dr.CustomOp):
@@ -919,9 +923,9 @@ class _FusedResidual(dr.CustomOp):
             d_tab = [dr.ravel(ArrayXf(d), order="F") for d in deltas]
             dr.eval(a_tab, d_tab, dp)
             grad = dr.zeros(mi.Float, f.cfg.num_mlp_params)
-            for (o, fi, w_at, b_at), a, d in zip(layout, a_tab, d_tab):
+            for (o, fi, _, _), index, a, d in zip(layout, f.weight_and_bias_index, a_tab, d_tab):
                 wb = dr.matmul(_tensor(d, (n_points, o)), _tensor(a, (n_points, fi + 1)), At=True)
-                dr.scatter(grad, wb.array, _weight_and_bias_index(o, fi, w_at, b_at))
+                dr.scatter(grad, wb.array, index)
             column = dr.zeros(mi.Float, f.cfg.num_mlp_params * f.n)
             dr.scatter(column, grad, dr.arange(mi.UInt32, f.cfg.num_mlp_params) * f.n
                        + dr.opaque(mi.UInt32, self.k))
