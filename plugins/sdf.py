@@ -722,14 +722,14 @@ class ResidualField:
         (:meth:`_evaluate_padded`).
         """
         llvm = dr.backend_v(weights.array) == dr.JitBackend.LLVM
-        needs_grad = dr.grad_enabled(weights) or any(dr.grad_enabled(p) for p in points)
+        want_w, want_p = dr.grad_enabled(weights), [dr.grad_enabled(p) for p in points]
+        needs_grad = want_w or any(want_p)
         if not llvm or (needs_grad and self.cfg.gradients == "tensor"):
             return [self._evaluate_padded(weights, k, p) for k, p in zip(instances, points)]
         if not needs_grad:
             return [self._evaluate_coop(weights, k, p) for k, p in zip(instances, points)]
-        want_w = dr.grad_enabled(weights)
-        return [dr.custom(_FusedResidual, weights, p, self, k, (want_w, dr.grad_enabled(p)))
-                for k, p in zip(instances, points)]
+        return [dr.custom(_FusedResidual, weights, p, self, k, (want_w, wp))
+                for k, p, wp in zip(instances, points, want_p)]
 
     def _layers(self, weights: mi.TensorXf, k: int) -> Iterator[tuple[int, int, mi.Float, mi.Float]]:
         """``(out, in, W, b)`` per layer of instance ``k``'s MLP (``W`` row-major), gathered from the
@@ -744,6 +744,11 @@ class ResidualField:
     def _output(self, g):
         """``R = r_max sigmoid(g - shift)`` from the MLP's output ``g``."""
         return self.cfg.max_residual * sigmoid(g - self.cfg.shift)
+
+    def _output_slope(self, g):
+        """``dR/dg = r_max sigma (1 - sigma)`` at the MLP's output ``g`` (:meth:`_output`)."""
+        sg = sigmoid(g - self.cfg.shift)
+        return self.cfg.max_residual * sg * (1.0 - sg)
 
     def instance_params(self, weights: mi.TensorXf, k: int) -> mi.TensorXf:
         """Instance ``k``'s column of the ``(num_mlp_params, N)`` weights: its MLP's parameters,
@@ -784,9 +789,10 @@ class ResidualField:
         du = self._coordinate_scales(p_local)
         out = []
         for a, d in enumerate((dp.x, dp.y, dp.z)):
+            dua = du[a] * d
             for kf, w in enumerate(self._frequencies()):
-                s, c = feats[2 * (a * self.cfg.frequencies + kf): 2 * (a * self.cfg.frequencies + kf) + 2]
-                out += [w * c * (du[a] * d), -w * s * (du[a] * d)]
+                j = 2 * (a * self.cfg.frequencies + kf)
+                out += [w * feats[j + 1] * dua, -w * feats[j] * dua]
         return out
 
     def encoding_adjoint(self, feats: list[mi.Float], p_local: mi.Vector3f,
@@ -892,8 +898,7 @@ class _FusedResidual(dr.CustomOp):
             if i < len(hidden):
                 normed, slope, inv = hidden[i]
                 dx = [sl * d for sl, d in zip(slope, layer_norm_derivative(normed, inv, dz))]
-        sg = sigmoid(g - f.cfg.shift)
-        self.set_grad_out(f.cfg.max_residual * sg * (1.0 - sg) * dz[0])
+        self.set_grad_out(f._output_slope(g) * dz[0])
 
     def backward(self):
         f = self.field
@@ -902,8 +907,7 @@ class _FusedResidual(dr.CustomOp):
         params = f.instance_params(self.weights, self.k)
         feats = f.encode(self.points)
         inputs, hidden, g = f.trace(params, feats)
-        sg = sigmoid(g - f.cfg.shift)
-        dz = [self.grad_out() * (f.cfg.max_residual * sg * (1.0 - sg))]
+        dz = [self.grad_out() * f._output_slope(g)]
         layout = f.cfg.mlp_layout()
         deltas = [None] * len(layout)
         for i in range(len(layout) - 1, -1, -1):
@@ -1340,8 +1344,7 @@ class InstanceField:
         lanes ``ridge[0]`` (ray directions ``ridge[1]``, face tolerance ``ridge[2]``, and
         optionally per lane a kink's weight ``ridge[3]``, ``-1`` for none) that lie on a ridge;
         ``lambda = -1`` elsewhere (detached)."""
-        lanes, dirs, tol = ridge[:3]
-        kink_lam = ridge[3] if len(ridge) > 3 else None
+        lanes, dirs, tol, kink_lam = _ridge_parts(ridge)
         width = dr.width(p.x)
         with dr.suspend_grad():
             pr, tr, ir = (dr.gather(type(p), p, lanes), dr.gather(mi.Float, time, lanes),
@@ -1391,8 +1394,7 @@ class InstanceField:
         ``ridge[2]``) into the envelope gradient of :func:`box_sdf_ray_local`; only those lanes
         pay for it. ``inst`` holds each lane's instance (one value: every lane); an optional
         ``ridge[3]`` gives kinks their own weights (:func:`ridge_faces`)."""
-        lanes, dirs, tol = ridge[:3]
-        kink_lam = ridge[3] if len(ridge) > 3 else None
+        lanes, dirs, tol, kink_lam = _ridge_parts(ridge)
         with dr.suspend_grad():
             pr = dr.gather(type(p), p, lanes)
             tr = dr.gather(mi.Float, time, lanes)
@@ -1420,6 +1422,12 @@ class InstanceField:
         pts = [mi.Vector3f(*[dr.gather(mi.Float, c, idxs[i]) for c in parts[i][1]]) for i in live]
         res = self.residual.evaluate_grouped(weights, [parts[i][0] for i in live], pts)
         return [(i, idxs[i], r) for i, r in zip(live, res)]
+
+
+def _ridge_parts(ridge: tuple) -> tuple:
+    """``(lanes, directions, tolerance, kink weights or None)`` of a ``ridge`` argument of
+    :meth:`InstanceField.lane_sdfs` (the kink weights ``ridge[3]`` are optional)."""
+    return (*ridge[:3], ridge[3] if len(ridge) > 3 else None)
 
 
 def _near_box(p_local: mi.Vector3f, half: mi.Vector3f, reach) -> mi.Bool:
