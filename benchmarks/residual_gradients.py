@@ -24,11 +24,10 @@ import dataclasses
 import time
 from pathlib import Path
 
-import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from common import BUNDLED, write_results
+from common import BUNDLED, side_by_side_steps, write_results
 import vsrd_mi  # noqa: F401  (sets the variant, registers the plugins)
 from vsrd_mi.bench import integrator as bench
 from vsrd_mi.data.kitti360 import Sequence
@@ -47,20 +46,6 @@ MODES = ("tensor", "fused")
 SAMPLERS = ("adaptive", "dense")
 
 
-def box_gradient(it, batch: bench.RayBatch) -> np.ndarray:
-    """Labels and the weighted loss's gradient w.r.t. the box parameters (one pass)."""
-    params = [it.field.params[k] for k in bench.BOX_KEYS]
-    for p in params:
-        dr.enable_grad(p)
-    labels = it.render_rays(batch.o, batch.d, batch.time)
-    dr.backward(bench.weighted_loss(labels[:it.field.n], batch.weights))
-    grad = np.concatenate([np.array(dr.grad(p)) for p in params])
-    values = np.stack([np.array(dr.detach(x)) for x in labels])
-    for k, p in zip(bench.BOX_KEYS, params):
-        it.field.params[k] = dr.detach(p)
-    return values, grad
-
-
 def run_case(n_inst: int, n_rays: int, steps: int, samplers, cfg: bench.BenchConfig) -> dict:
     data, _ = bench.case_data(cfg, n_inst, True)
     batch = data.batch(n_rays)
@@ -70,17 +55,13 @@ def run_case(n_inst: int, n_rays: int, steps: int, samplers, cfg: bench.BenchCon
         for mode in MODES:
             desc = {**bench.integrator_description(data.boxes, sampler, True, cfg), "residual_gradients": mode}
             run = bench.TimedIntegrator(mi.load_dict(desc), batch, cfg, 1)
-            outputs[mode] = box_gradient(run.it, batch)
-            run.step()
-            run.step()
+            render = lambda it=run.it: it.render_rays(batch.o, batch.d, batch.time)  # noqa: E731
+            outputs[mode] = bench.labels_and_gradient(run.it, [(render, batch.weights)])
             runs[(sampler, mode)] = run
         (v_t, g_t), (v_f, g_f) = outputs["tensor"], outputs["fused"]
         agreement[sampler] = {"labels_max_abs_diff": float(np.abs(v_t - v_f).max()),
                               "box_grad_cosine": bench.cosine(g_t, g_f)}
-    times = {key: [] for key in runs}
-    for _ in range(steps):
-        for key, run in runs.items():
-            times[key].append(run.step()[0])
+    times = side_by_side_steps(runs, steps)
     median = {f"{s}/{m}": float(np.median(t)) for (s, m), t in times.items()}
     out = {"instances": n_inst, "rays": n_rays, "median_s": median,
            "steps_s": {f"{s}/{m}": t for (s, m), t in times.items()}, "agreement": agreement,

@@ -33,7 +33,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from common import write_results
+from common import side_by_side_steps, write_results
 import vsrd_mi  # noqa: F401  (sets the variant, registers the plugins)
 from vsrd_mi.bench import integrator as bench
 
@@ -121,16 +121,8 @@ def main() -> int:
                   f"rays > 0.01: {rows[-1]['rays_above_0.01']}", flush=True)
     data, _ = bench.case_data(cfg, args.timing_instances, True)
     batch = data.batch(args.timing_rays)
-    timed = []
-    for _, options in SETTINGS:
-        ti = bench.TimedIntegrator(adaptive(data, options, cfg), batch, cfg, seed=1)
-        ti.step()
-        ti.step()  # warm-up: the second call's bucket layout compiles too
-        timed.append(ti)
-    seconds = {name: [] for name, _ in SETTINGS}
-    for _ in range(args.repeats):
-        for (name, _), ti in zip(SETTINGS, timed):
-            seconds[name].append(ti.step()[0])
+    seconds = side_by_side_steps({name: bench.TimedIntegrator(adaptive(data, options, cfg), batch, cfg, seed=1)
+                                  for name, options in SETTINGS}, args.repeats)
     base = float(np.median(seconds[SETTINGS[0][0]]))
     timing = [{"setting": name, "median_s": float(np.median(s)), "runs_s": s,
                "ratio_to_first": float(np.median(s)) / base} for name, s in seconds.items()]

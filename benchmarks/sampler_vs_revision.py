@@ -28,7 +28,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from common import write_results
+from common import side_by_side_steps, write_results
 import vsrd_mi  # noqa: F401  (sets the variant, registers the plugins)
 import vsrd_plugins
 from vsrd_mi.bench import integrator as bench
@@ -71,12 +71,7 @@ def run_case(old_cls, n_inst: int, n_rays: int, steps: int, cfg: bench.BenchConf
     for name, run in runs.items():
         with dr.suspend_grad():
             labels[name] = np.stack([np.array(x) for x in run.it.render_rays(batch.o, batch.d, batch.time)])
-        run.step()
-        run.step()
-    times = {name: [] for name in runs}
-    for _ in range(steps):
-        for name, run in runs.items():
-            times[name].append(run.step()[0])
+    times = side_by_side_steps(runs, steps)
     median = {name: float(np.median(t)) for name, t in times.items()}
     return {"instances": n_inst, "rays": n_rays, "median_s": median, "steps_s": times,
             "speedup": median["revision"] / median["working tree"],
