@@ -7,7 +7,9 @@ benchmark's 6-box residual scene (same seed, same rays, s = 10) it times, side b
 loop (this machine is noisy: compare the ratios), the dense sampler with the field and the
 adaptive sampler
 
-* as it ships (band, tail and moved samples; :data:`SETTINGS`),
+* as it ships (band, tail and moved samples; isolated rays with their bands' anchors and the
+  extrema of ``B + R`` only; :data:`SETTINGS`),
+* without that isolated-ray layout (``isolated_rays`` off: every ray the full layout),
 * without tail samples (``residual_tail = 0``: the band's samples only, moved to the extrema of
   ``B + R`` they find),
 * without any residual search (``residual_scan = 0``: the band sits at the box's own minimum, no
@@ -46,6 +48,7 @@ from vsrd_mi.bench import integrator as bench  # noqa: E402
 SETTINGS = (
     ("dense", "dense", True, {}),
     ("adaptive (default)", "adaptive", True, {}),
+    ("adaptive, no isolated-ray layout", "adaptive", True, {"isolated_rays": False}),
     ("adaptive, no tail samples", "adaptive", True, {"residual_tail": 0}),
     ("adaptive, no residual search", "adaptive", True, {"residual_tail": 0, "residual_scan": 0}),
     ("adaptive, no residual field", "adaptive", False, {}),

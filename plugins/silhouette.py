@@ -723,9 +723,8 @@ class SamplingConfig:
     #: Rays whose bands are isolated (see :meth:`VSRDSilhouetteIntegrator._isolated`) get
     #: ``isolated_band_samples`` band samples (>= 1; the first sits at the band's centre: the
     #: surface entry or closest approach) instead of ``band_samples``; with the residual field,
-    #: the band's anchors and the extrema of ``B + R`` its moved samples found, where a band has
-    #: at most ``isolated_extrema`` of them (see
-    #: :meth:`VSRDSilhouetteIntegrator._extremum_samples`).
+    #: the band's anchors and the extrema of ``B + R`` along it, where each band has at most
+    #: ``isolated_extrema`` of them (see :meth:`VSRDSilhouetteIntegrator._extremum_samples`).
     isolated_rays: bool = True
     isolated_band_samples: int = 1
     isolated_extrema: int = 3
@@ -1439,7 +1438,7 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
                     extrema, found = self._chord_extrema(grid, concat([pk.valid & isolated for pk in picked]))
                     n = dr.width(count)
                     for b, sl in enumerate(slots):
-                        isolated &= (count <= b) | (block_of(found, b, n) <= self.cfg.isolated_extrema)
+                        isolated = isolated & ((count <= b) | (block_of(found, b, n) <= self.cfg.isolated_extrema))
                         slots[b] = replace(sl, isolated=self._extremum_samples(sl, [block_of(x, b, n) for x in extrema]))
                     isolated, _ = self._worth_isolating(isolated, count, len(slots))
                     # the moved samples of the full layout: only the other rays' pairs scan for them
@@ -1505,29 +1504,29 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
 
     def _isolates(self) -> bool:
         """Whether isolated rays get their own layout: ``isolated_rays`` is on and either the
-        residual field is off or the moved samples find the extrema of ``B + R`` (which need not
-        be convex along a ray: the layout then samples those extrema, :meth:`_extremum_samples`)."""
+        residual field is off or the extrema of ``B + R`` are searched (moved samples and the
+        chord grid on: ``B + R`` need not be convex along a ray, and the isolated layout samples
+        its extrema, :meth:`_extremum_samples`)."""
         return self.cfg.isolated_rays and (self.field.residual_reach == 0
                                            or (self._snaps() and self.cfg.residual_grid > 0))
 
     def _worth_isolating(self, isolated: mi.Bool, count: mi.UInt32, n_slots: int) -> tuple[mi.Bool, bool]:
-        """With the residual field, ``isolated`` kept only for the band counts whose isolated
-        rays are many enough to pay for a sample group of their own, and whether any are: a
-        group costs a fixed :data:`GROUP_COST_SAMPLES` on top of its samples, and an isolated
-        band saves the full layout's samples minus its own (:meth:`_extremum_samples`). (6
-        boxes, 1000 rays: 10 % slower with every isolated ray in a group of its own; 16k rays
-        25 % faster.)"""
+        """With the residual field, ``isolated`` where the batch's isolated rays together pay for
+        their sample groups, else no ray, and which of the two: a group costs a fixed
+        :data:`GROUP_COST_SAMPLES` on top of its samples, and an isolated band saves the full
+        layout's samples minus its own (:meth:`_extremum_samples`). (6 boxes, 1000 rays: 10 %
+        slower with the isolated rays in groups of their own; 16k rays 25 % faster.) Decided
+        for the batch as a whole, not per band count: a band count whose isolated group came
+        and went from step to step compiled its kernels at the first step it came.
+        """
         kp, kq = self._tail_samples()
         saved_per_band = (self.cfg.band_samples + kp + kq + 3) - (6 + self.cfg.isolated_extrema + KINK_MINIMA)
         hist = dr.zeros(mi.UInt32, n_slots + 1)
         dr.scatter_add(hist, mi.UInt32(isolated), count)
-        keep = [g for g, rays in enumerate(hist.numpy()) if g and rays * g * saved_per_band >= GROUP_COST_SAMPLES]
-        if not keep:
-            return mi.Bool(False), False
-        worth = mi.Bool(False)
-        for g in keep:
-            worth |= count == g
-        return isolated & worth, True
+        rays = hist.numpy()[1:].astype(np.int64)
+        saved = int((rays * np.arange(1, n_slots + 1)).sum()) * saved_per_band
+        worth = saved >= GROUP_COST_SAMPLES * int((rays > 0).sum()) and saved > 0
+        return (isolated if worth else dr.zeros(mi.Bool, dr.width(count))), worth
 
     def _extremum_samples(self, sl: Slot, extrema: list[mi.Float]) -> tuple:
         """An isolated ray's samples of a band after its entry, with the residual field: the
