@@ -727,9 +727,16 @@ class ResidualField:
         if not llvm or (needs_grad and self.cfg.gradients == "tensor"):
             return [self._evaluate_padded(weights, k, p) for k, p in zip(instances, points)]
         if not needs_grad:
-            return [self._evaluate_coop(weights, k, p) for k, p in zip(instances, points)]
-        return [dr.custom(_FusedResidual, weights, p, self, k, (want_w, wp))
-                for k, p, wp in zip(instances, points, want_p)]
+            out = [self._evaluate_coop(weights, k, p) for k, p in zip(instances, points)]
+        else:
+            out = [dr.custom(_FusedResidual, weights, p, self, k, (want_w, wp))
+                   for k, p, wp in zip(instances, points, want_p)]
+        # each group in a kernel of its own: left lazy, two groups of equal width (instances
+        # whose lanes happened to be as many) were evaluated together, in a kernel of both MLPs
+        # that compiled anew whenever that happened (12 boxes, 1k rays: after warm-up)
+        for r in out:
+            dr.eval(r)
+        return out
 
     def _layers(self, weights: mi.TensorXf, k: int) -> Iterator[tuple[int, int, mi.Float, mi.Float]]:
         """``(out, in, W, b)`` per layer of instance ``k``'s MLP (``W`` row-major), gathered from the
@@ -935,6 +942,9 @@ class _FusedResidual(dr.CustomOp):
                        + dr.opaque(mi.UInt32, self.k))
             self.set_grad_in("weights", _tensor(column, self.weights.shape))
         if want_p:
+            # evaluated here (with the weights' tables above, or alone): left lazy, two
+            # instances' backward passes of equal width ran as one kernel of both
+            dr.eval(dp)
             self.set_grad_in("points", dp)
 
     def name(self):
@@ -1377,6 +1387,7 @@ class InstanceField:
         extra = dr.zeros(mi.Float, dr.width(pl.x))
         for _, lanes, r in self._residuals(weights, [(k, pl, near & (inst == k)) for k in range(self.n)]):
             dr.scatter_add(extra, r, lanes)
+            dr.eval(extra)  # one kernel per instance: pending scatters of equal width share one
         return extra
 
     def _lane_sdfs_ad(self, dec: DecodedBoxes, p: mi.Point3f, time: mi.Float, inst: mi.UInt32,

@@ -1435,7 +1435,8 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
                 # have few extrema of B + R (each of them a sample), and where enough rays do
                 isolated, worth = self._worth_isolating(isolated, count, len(slots))
                 if worth:
-                    extrema, found = self._chord_extrema(grid, concat([pk.valid & isolated for pk in picked]))
+                    extrema, found = self._chord_extrema(grid, concat([pk.valid & isolated for pk in picked]),
+                                                         [t for t, _, _ in minima])
                     n = dr.width(count)
                     for b, sl in enumerate(slots):
                         isolated = isolated & ((count <= b) | (block_of(found, b, n) <= self.cfg.isolated_extrema))
@@ -1544,20 +1545,24 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         return tuple(sorted_arrays([sl.mid, sl.hi, sl.extra, sl.tail_end,
                                     *(dr.select(x >= 0.0, x, sl.tail_end) for x in (*extrema, *kink_ts))]))
 
-    def _chord_extrema(self, grid: "ChordGrid", scan: mi.Bool) -> tuple[list[mi.Float], mi.UInt32]:
+    def _chord_extrema(self, grid: "ChordGrid", scan: mi.Bool, kinks: list[mi.Float]) -> tuple[list[mi.Float], mi.UInt32]:
         """Per (slot, ray) pair of ``grid`` where ``scan`` holds: the first ``isolated_extrema``
         local extrema of ``F = B + R`` along its chord (``-1`` past the last) and how many there
-        are (detached; 0 and ``-1`` elsewhere).
+        are (detached; 0 and ``-1`` elsewhere). ``kinks``: per pair the minima of ``F`` at kinks
+        of ``B`` (ascending, ``-1`` for none; :meth:`_kink_minima`).
 
         ``F`` (``B`` exact, ``R`` interpolated, :class:`ChordGrid`) is scanned at
-        :data:`EXTREMUM_SCAN` points per grid cell; an extremum counts once ``F`` has moved
-        away from it by :data:`SNAP_PROMINENCE` (hysteresis: a flat extremum counts as well as a
-        sharp one, the chord grid's wiggles do not), and sits at the vertex of the parabola
-        through it and the scan points on either side. The moved samples of the full layout
-        (:meth:`_snapped_positions`) take an extremum only where it differs from a neighbouring
-        scan point by the prominence: a flat maximum between two minima went unseen there and
-        was covered by the band's other samples, which an isolated band does not have (labels
-        off by 0.009 on the integrator benchmark's 6-box scene).
+        :data:`EXTREMUM_SCAN` points per grid cell and at the kinks, in order; an extremum
+        counts once ``F`` has moved away from it by :data:`SNAP_PROMINENCE` (hysteresis: a flat
+        extremum counts as well as a sharp one, the chord grid's wiggles do not), and
+        :data:`KINK_GOLDEN` golden-section steps between the scan points around it place it.
+        The moved samples of the full layout (:meth:`_snapped_positions`) take an extremum only
+        where it differs from a neighbouring scan point by the prominence: a flat maximum
+        between two minima went unseen there and was covered by the band's other samples, which
+        an isolated band does not have (labels off by 0.009 on the integrator benchmark's 6-box
+        scene). Without the kinks among the scan points, a maximum 8 cm past a kink minimum
+        went unseen between the scan points on either side (12 boxes, 16k rays: one ray's label
+        off by 0.0087).
         """
         n_ext = self.cfg.isolated_extrema
         width = dr.width(grid.points)
@@ -1569,39 +1574,55 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         start = dr.gather(mi.Float, grid.start, lanes)
         h = dr.rcp(dr.gather(mi.Float, grid.inv_step, lanes) * EXTREMUM_SCAN)
         last = (dr.gather(mi.UInt32, grid.points, lanes) - 1) * EXTREMUM_SCAN
+        # the kinks inside the chord, ascending, +inf past the last
+        ks = [dr.gather(mi.Float, kt, lanes) for kt in kinks]
+        end = dr.fma(mi.Float(last), h, start)
+        ks = [dr.select((kt > start) & (kt < end), kt, dr.inf) for kt in ks] + [mi.Float(dr.inf)]
 
         def f(x):
             return grid.sdf(lanes, x)
 
-        f0 = f(start)
+        def next_kink(j):
+            return pick(ks, dr.minimum(j, len(ks) - 1) + 1)
+
         prom = mi.Float(SNAP_PROMINENCE)
         # direction: 0 undecided (the chord's start is a sample anyway), 1 rising, -1 falling;
-        # (f, x) of the running extremum in that direction
-        state = (mi.UInt32(1), mi.Int32(0), f0, start, mi.UInt32(0), *[mi.Float(-1.0) for _ in range(n_ext)])
+        # (f, x) of the running extremum in that direction; per extremum its place and sign
+        state = (mi.UInt32(1), mi.UInt32(0), mi.Int32(0), f(start), start, mi.UInt32(0),
+                 *[mi.Float(-1.0) for _ in range(n_ext)], *[mi.Int32(0) for _ in range(n_ext)])
 
-        def body(i, direction, run_f, run_x, count, *ext):
-            x = dr.fma(mi.Float(i), h, start)
+        def body(i, j, direction, run_f, run_x, count, *ext):
+            places, signs = list(ext[:n_ext]), list(ext[n_ext:])
+            # the next scan point: the next kink where it comes before the next grid point
+            x_grid = dr.fma(mi.Float(i), h, start)
+            x_kink = next_kink(j)
+            at_kink = x_kink <= x_grid
+            x = dr.select(at_kink, x_kink, x_grid)
             fi = f(x)
             # undecided: the first move by the prominence sets the direction
             undecided = direction == 0
             rises, falls = undecided & (fi > run_f + prom), undecided & (fi < run_f - prom)
             # a running maximum (rising) or minimum (falling) confirmed by a return past it
             confirmed = ((direction == 1) & (fi < run_f - prom)) | ((direction == -1) & (fi > run_f + prom))
-            ext = [dr.select(confirmed & (count == e), run_x, v) for e, v in enumerate(ext)]
+            places = [dr.select(confirmed & (count == e), run_x, v) for e, v in enumerate(places)]
+            signs = [dr.select(confirmed & (count == e), direction, v) for e, v in enumerate(signs)]
             count = count + dr.select(confirmed, 1, 0)
             direction = dr.select(rises | (confirmed & (direction == -1)), 1,
                                   dr.select(falls | (confirmed & (direction == 1)), -1, direction))
             better = ((direction == 1) & (fi > run_f)) | ((direction == -1) & (fi < run_f))
             restart = rises | falls | confirmed | better
-            return (i + 1, direction, dr.select(restart, fi, run_f), dr.select(restart, x, run_x), count, *ext)
+            return (dr.select(at_kink, i, i + 1), dr.select(at_kink, j + 1, j), direction,
+                    dr.select(restart, fi, run_f), dr.select(restart, x, run_x), count, *places, *signs)
 
-        state = dr.while_loop(state, lambda i, *s: i <= last, body, label="vsrd_chord_extrema")
-        count, raw = state[4], state[5:]
-        for e, x in enumerate(raw):  # the parabola's vertex through the scan points around it
-            fl, fc, fr = f(x - h), f(x), f(x + h)
-            den = fl - 2.0 * fc + fr
-            shift = dr.select(dr.abs(den) > 0.0, 0.5 * h * (fl - fr) / dr.select(den == 0.0, 1.0, den), 0.0)
-            dr.scatter(extrema[e], dr.select(x >= 0.0, x + dr.clip(shift, -h, h), -1.0), lanes)
+        state = dr.while_loop(state, lambda i, j, *s: (i <= last) | (next_kink(j) < dr.inf), body,
+                              label="vsrd_chord_extrema")
+        count, places, signs = state[5], state[6:6 + n_ext], state[6 + n_ext:]
+        # between the scan points on either side: the least F for a minimum, the least -F for
+        # a maximum (sign 1: the scan was rising into it)
+        fs = [(lambda t, sg=sg: dr.select(sg == 1, -f(t), f(t))) for sg in signs]
+        refined = golden_section(fs, [(x - h, x + h) for x in places], KINK_GOLDEN, "vsrd_chord_extrema_refine")
+        for e, (x, xr) in enumerate(zip(places, refined)):
+            dr.scatter(extrema[e], dr.select(x >= 0.0, xr, -1.0), lanes)
         dr.scatter(found, count, lanes)
         dr.eval(extrema, found)
         return extrema, found
@@ -1933,6 +1954,7 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         out = dr.zeros(mi.Float, dr.width(t))
         for (_, idx), rk in zip(groups, res):
             dr.scatter(out, rk, idx)
+            dr.eval(out)  # one kernel per instance: pending scatters of equal width share one
         return out
 
     def _snapped_positions(self, sdf, starts: list[mi.Float], ends: list[mi.Float], k_sub: int, k: int,

@@ -20,7 +20,8 @@ i.e. grazing, 20 % anywhere in the view) are rendered with ``render_rays`` by a 
   or ``cache_disk`` true (loaded from the disk cache, which Dr.Jit reports with ``cache_hit``
   true, so ``cache_hit`` alone misses recompilations of kernels an earlier process wrote).
 * **accuracy** on the first ``accuracy_rays`` rays of an instance count's ray set (shared by its
-  ray counts, which use nested prefixes of one set): soft-label error (per ray the largest
+  ray counts, which use nested prefixes of one set), rendered by the samplers within the whole
+  set, as the largest timed case renders them: soft-label error (per ray the largest
   |difference| over instances; max and 99th percentile over rays) and the cosine of the gradients
   w.r.t. all box parameters, adaptive vs dense and each vs a brute-force reference: the
   integrator's own integral (``integrate_at``) on a uniform grid of spacing
@@ -517,18 +518,24 @@ def central_differences(it: VSRDSilhouetteIntegrator, loss: Callable[[], float],
 def labels_and_gradients(data: CaseData, residual: bool, n: int, cfg: BenchConfig
                          ) -> tuple[dict[str, tuple[np.ndarray, np.ndarray]], dict[str, float]]:
     """Labels and AD gradients of adaptive, dense and the reference on the first ``n`` rays, and
-    the seconds each took."""
-    batch = data.batch(n)
+    the seconds each took. The samplers render the case's whole ray set, as the timed steps
+    do at its largest ray count (the adaptive sampler lays out a large batch differently:
+    isolated rays with the residual field get their own sample groups only where enough of
+    them pay for those), with the loss weights of the rays past the first ``n`` set to 0."""
+    batch = data.batch(len(data.t))
+    first = to_float((np.arange(len(data.t)) < n).astype(np.float32))
+    weights = [w * first for w in batch.weights]
     out, seconds = {}, {}
     for name in SAMPLINGS + ("reference",):
         it = load_integrator(data.boxes, "dense" if name == "reference" else name, residual, cfg)
         start = time.perf_counter()
         if name == "reference":
-            chunks = (reference_chunk(it, data, a, min(a + cfg.ref_chunk_rays, n), cfg)
-                      for a in range(0, n, cfg.ref_chunk_rays))
+            out[name] = labels_and_gradient(it, (reference_chunk(it, data, a, min(a + cfg.ref_chunk_rays, n), cfg)
+                                                 for a in range(0, n, cfg.ref_chunk_rays)))
         else:
-            chunks = iter([(lambda it=it: it.render_rays(batch.o, batch.d, batch.time), batch.weights)])
-        out[name] = labels_and_gradient(it, chunks)
+            labels, grad = labels_and_gradient(it, iter([(lambda it=it: it.render_rays(batch.o, batch.d, batch.time),
+                                                          weights)]))
+            out[name] = (labels[:, :n], grad)
         seconds[name] = time.perf_counter() - start
     return out, seconds
 
