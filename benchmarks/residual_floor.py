@@ -59,23 +59,17 @@ MAX_LABEL_ERROR = 0.01
 MIN_GRAD_COSINE = 0.99
 
 
-def integrator(data: bench.CaseData, sampling: str, residual: bool, options: dict, cfg: bench.BenchConfig):
-    import mitsuba as mi
-    return mi.load_dict({**bench.integrator_description(data.boxes, sampling, residual, cfg), **options})
-
-
 def accuracy(data: bench.CaseData, cfg: bench.BenchConfig) -> list[dict]:
     """Label error and gradient cosine of every residual setting against the reference."""
     n = cfg.accuracy_rays
     batch = data.batch(n)
     ref_it = bench.load_integrator(data.boxes, "dense", True, cfg)
-    ref = bench.labels_and_gradient(ref_it, (bench.reference_chunk(ref_it, data, a, min(a + cfg.ref_chunk_rays, n), cfg)
-                                             for a in range(0, n, cfg.ref_chunk_rays)))
+    ref = bench.labels_and_gradient(ref_it, bench.reference_chunks(ref_it, data, n, cfg))
     rows = []
     for name, sampling, residual, options in SETTINGS:
         if not residual:
             continue
-        it = integrator(data, sampling, residual, options, cfg)
+        it = bench.load_integrator(data.boxes, sampling, residual, cfg, **options)
         labels, grad = bench.labels_and_gradient(it, iter([(lambda it=it: it.render_rays(batch.o, batch.d, batch.time),
                                                             batch.weights)]))
         err = bench.label_error(labels, ref[0])
@@ -116,7 +110,7 @@ def main() -> int:
     data, _ = bench.case_data(cfg, args.instances, True)
     rows = accuracy(data, cfg)
     batch = data.batch(args.rays)
-    runs = {name: bench.TimedIntegrator(integrator(data, sampling, residual, options, cfg), batch, cfg, seed=1)
+    runs = {name: bench.TimedIntegrator(bench.load_integrator(data.boxes, sampling, residual, cfg, **options), batch, cfg, seed=1)
             for name, sampling, residual, options in SETTINGS}
     seconds = side_by_side_steps(runs, args.repeats)
     dense = float(np.median(seconds["dense"]))

@@ -60,13 +60,11 @@ SETTINGS = (
 def reference_labels(data: bench.CaseData, n: int, cfg: bench.BenchConfig) -> np.ndarray:
     """The brute-force reference's labels (instances, rays) of the first ``n`` rays."""
     it = bench.load_integrator(data.boxes, "dense", True, cfg)
-    chunks = (bench.reference_chunk(it, data, a, min(a + cfg.ref_chunk_rays, n), cfg)
-              for a in range(0, n, cfg.ref_chunk_rays))
-    return bench.labels_and_gradient(it, chunks)[0]
+    return bench.labels_and_gradient(it, bench.reference_chunks(it, data, n, cfg))[0]
 
 
 def adaptive(data: bench.CaseData, options: dict, cfg: bench.BenchConfig):
-    return mi.load_dict({**bench.integrator_description(data.boxes, "adaptive", True, cfg), **options})
+    return bench.load_integrator(data.boxes, "adaptive", True, cfg, **options)
 
 
 def adaptive_labels(data: bench.CaseData, options: dict, n: int, cfg: bench.BenchConfig) -> np.ndarray:

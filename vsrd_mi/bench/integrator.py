@@ -236,8 +236,10 @@ def integrator_description(boxes: dict, sampling: str, residual: bool, cfg: Benc
             "sharpness": cfg.sharpness, "temperature": cfg.temperature, **instance_properties(**boxes)}
 
 
-def load_integrator(boxes: dict, sampling: str, residual: bool, cfg: BenchConfig) -> VSRDSilhouetteIntegrator:
-    return mi.load_dict(integrator_description(boxes, sampling, residual, cfg))
+def load_integrator(boxes: dict, sampling: str, residual: bool, cfg: BenchConfig, **options) -> VSRDSilhouetteIntegrator:
+    """The benchmark's integrator (:func:`integrator_description`), with integrator ``options``
+    on top (e.g. ``residual_tail=0``)."""
+    return mi.load_dict({**integrator_description(boxes, sampling, residual, cfg), **options})
 
 
 # ----------------------------------------------------------------------------------------------
@@ -432,6 +434,14 @@ def reference_chunk(it: VSRDSilhouetteIntegrator, data: CaseData, start: int, st
     return render, sub.weights
 
 
+
+def reference_chunks(it: VSRDSilhouetteIntegrator, data: CaseData, n: int, cfg: BenchConfig
+                     ) -> Iterator[tuple[Callable[[], list[mi.Float]], list[mi.Float]]]:
+    """:func:`reference_chunk` over the first ``n`` rays, ``ref_chunk_rays`` at a time."""
+    for a in range(0, n, cfg.ref_chunk_rays):
+        yield reference_chunk(it, data, a, min(a + cfg.ref_chunk_rays, n), cfg)
+
+
 # ----------------------------------------------------------------------------------------------
 # accuracy
 # ----------------------------------------------------------------------------------------------
@@ -481,8 +491,7 @@ def reference_fd_gradient(data: CaseData, residual: bool, n: int, cfg: BenchConf
     continuous integral's derivative blends the faces meeting there.
     """
     it = load_integrator(data.boxes, "dense", residual, cfg)
-    chunks = [reference_chunk(it, data, a, min(a + cfg.ref_chunk_rays, n), cfg)
-              for a in range(0, n, cfg.ref_chunk_rays)]
+    chunks = list(reference_chunks(it, data, n, cfg))
     weights = [np.stack([np.array(w, dtype=np.float64) for w in ws]) for _, ws in chunks]
 
     def loss() -> float:
@@ -530,8 +539,7 @@ def labels_and_gradients(data: CaseData, residual: bool, n: int, cfg: BenchConfi
         it = load_integrator(data.boxes, "dense" if name == "reference" else name, residual, cfg)
         start = time.perf_counter()
         if name == "reference":
-            out[name] = labels_and_gradient(it, (reference_chunk(it, data, a, min(a + cfg.ref_chunk_rays, n), cfg)
-                                                 for a in range(0, n, cfg.ref_chunk_rays)))
+            out[name] = labels_and_gradient(it, reference_chunks(it, data, n, cfg))
         else:
             labels, grad = labels_and_gradient(it, iter([(lambda it=it: it.render_rays(batch.o, batch.d, batch.time),
                                                           weights)]))
