@@ -251,6 +251,11 @@ KINK_MINIMA = 2
 #: the residual field (its kernel launches and Python tracing, ~2.5 ms here), in samples (~0.1 us
 #: each): isolated rays with the residual field get a group only where they save more.
 GROUP_COST_SAMPLES = 25000
+#: The band anchors (:class:`Slot` fields) that an isolated ray's band keeps with the residual
+#: field (:meth:`VSRDSilhouetteIntegrator._extremum_samples`): the centre (surface entry, or a
+#: miss's least ``B + R``), the band's end, the extra sample (a hit's least ``B + R``) and the
+#: enlarged box's exit.
+ISOLATED_ANCHORS = ("mid", "hi", "extra", "tail_end")
 #: Scan points per chord-grid cell of :meth:`VSRDSilhouetteIntegrator._chord_extrema`.
 EXTREMUM_SCAN = 2
 #: Fewest grid points per chord of :meth:`VSRDSilhouetteIntegrator._chord_grid`.
@@ -471,8 +476,8 @@ class Slot:
     #: :meth:`VSRDSilhouetteIntegrator._snapped_slots` returns them (empty: not moved)
     moved: tuple = ()
     #: with the residual field, an isolated ray's samples of the band after its entry, sorted:
-    #: the centre, the band's end, the extra sample, the enlarged box's exit and the extrema of
-    #: ``B + R`` the moved samples took (:meth:`VSRDSilhouetteIntegrator._extremum_samples`)
+    #: the anchors :data:`ISOLATED_ANCHORS`, the extrema of ``B + R`` along the chord and its
+    #: minima at kinks of ``B`` (:meth:`VSRDSilhouetteIntegrator._extremum_samples`)
     isolated: tuple = ()
 
     def map(self, f) -> "Slot":
@@ -1520,8 +1525,7 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         for the batch as a whole, not per band count: a band count whose isolated group came
         and went from step to step compiled its kernels at the first step it came.
         """
-        kp, kq = self._tail_samples()
-        saved_per_band = (self.cfg.band_samples + kp + kq + 3) - (6 + self.cfg.isolated_extrema + KINK_MINIMA)
+        saved_per_band = self._band_layout(False, self.cfg.band_samples)[1] - self._band_layout(True)[1]
         hist = dr.zeros(mi.UInt32, n_slots + 1)
         dr.scatter_add(hist, mi.UInt32(isolated), count)
         rays = hist.numpy()[1:].astype(np.int64)
@@ -1529,12 +1533,24 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         worth = saved >= GROUP_COST_SAMPLES * int((rays > 0).sum()) and saved > 0
         return (isolated if worth else dr.zeros(mi.Bool, dr.width(count))), worth
 
+    def _band_layout(self, extrema: bool, kk: int = 0) -> tuple[int | None, int]:
+        """Per band of :meth:`_adaptive_groups`: the index of its extra sample and its samples,
+        the gap peak included. The full layout: entry, ``kk`` band samples, the first tail, the
+        extra sample, the second tail, the peak (:meth:`_tail_samples`). An isolated band with
+        the residual field (``extrema``): entry, :attr:`Slot.isolated` (the extra sample among
+        them: index ``None``), the peak."""
+        if extrema:
+            return None, 1 + len(ISOLATED_ANCHORS) + self.cfg.isolated_extrema + KINK_MINIMA + 1
+        kp, kq = self._tail_samples()
+        j_ex = kk + kp + 1
+        return j_ex, j_ex + kq + 2
+
     def _extremum_samples(self, sl: Slot, extrema: list[mi.Float]) -> tuple:
-        """An isolated ray's samples of a band after its entry, with the residual field: the
-        band's centre (surface entry, or a miss's least ``B + R``), its end, its extra sample
-        (a hit's least ``B + R``), the enlarged box's exit, the extrema of ``B + R`` along the
-        chord (:meth:`_chord_extrema`; ``-1``: none) and its minima at kinks and bends of ``B``
-        (:attr:`Slot.kinks`, :meth:`_kink_minima`), sorted (the exit stands in for missing ones).
+        """An isolated ray's samples of a band after its entry, with the residual field: its
+        anchors (:data:`ISOLATED_ANCHORS`), the extrema of ``B + R`` along the chord
+        (:meth:`_chord_extrema`; ``-1``: none) and its minima at kinks and bends of ``B``
+        (:attr:`Slot.kinks`, :meth:`_kink_minima`; :data:`KINK_MINIMA` of them), sorted (the
+        exit stands in for missing ones).
 
         On an isolated ray every other box is beyond its culling margin at the band's samples,
         so the labels are the band's opacity, which telescopes over each monotone run of ``F =
@@ -1542,7 +1558,7 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         ``F`` and the extrema, which these samples hold.
         """
         kink_ts = list(sl.kinks[0::2])
-        return tuple(sorted_arrays([sl.mid, sl.hi, sl.extra, sl.tail_end,
+        return tuple(sorted_arrays([*(getattr(sl, name) for name in ISOLATED_ANCHORS),
                                     *(dr.select(x >= 0.0, x, sl.tail_end) for x in (*extrema, *kink_ts))]))
 
     def _chord_extrema(self, grid: "ChordGrid", scan: mi.Bool, kinks: list[mi.Float]) -> tuple[list[mi.Float], mi.UInt32]:
@@ -2280,11 +2296,7 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
             # with the residual field an isolated band is its entry, the samples of
             # Slot.isolated and the gap peak (the extra sample among them)
             extrema = iso and moved
-            if extrema:
-                j_ex, per = None, len(slots[0].isolated) + 2
-            else:
-                j_ex = kk + kp + 1  # index of the extra sample: entry, K band samples, first tail, extra
-                per = j_ex + kq + 2  # ... second tail, gap peak
+            j_ex, per = self._band_layout(extrema, kk)
             with dr.suspend_grad():
                 # two padding rays (copies, masked out by ``active``) in every group: a width-1
                 # group would turn its values into kernel literals (new kernels for every value,
@@ -2371,10 +2383,6 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
                 dr.scatter(peak_b, mi.UInt32(pb), r * m + rank)
                 rays = dr.gather(mi.UInt32, ray_idx, sub)
                 inst = [dr.gather(mi.UInt32, slot_inst[b], sub) for b in range(g)]
-                # in one kernel of their own: left lazy, they were fused into their consumers'
-                # kernels or evaluated alone depending on what else had the group's width
-                # (kernels compiled anew at random steps)
-                dr.eval(rays, inst)
                 own = None
                 if iso:  # each sample's band
                     own = dr.zeros(mi.UInt32, na * m)
