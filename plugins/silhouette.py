@@ -234,6 +234,11 @@ MONOTONE_TOLERANCE = 1e-5
 SNAP_PROMINENCE = 2e-4
 #: Probe distance (m) on either side of a kink of ``B`` (:meth:`VSRDSilhouetteIntegrator._kink_minima`).
 KINK_PROBE = 1e-3
+#: Golden-section steps that place a moved sample's extremum between the scan points around it
+#: (:meth:`VSRDSilhouetteIntegrator._snapped_positions`): the bracket of two scan intervals
+#: shrinks 47x, to a few millimetres. The parabola through the three scan points missed the
+#: extrema of trained residual fields (steeper than at their initialisation) by up to 0.14 m.
+SNAP_GOLDEN = 8
 #: Golden-section steps that find the minimum of ``B + R`` beside a bend of ``B`` (or beside a
 #: kink, off it) between two of its probes (:meth:`VSRDSilhouetteIntegrator._kink_minima`):
 #: the bracket shrinks 320x, to well under a millimetre for the widest bends.
@@ -1767,7 +1772,9 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         """Moved positions of every slot's samples in the order :meth:`_sub_bands` reads them: the first
         tail's ``kp`` in ``(hi, extra)``, the second tail's ``kq`` in ``(extra, tail end]``, the
         band's first half's ``K/2 - 1`` in ``(lo, mid)`` (its last sample, the centre, stays)
-        and its second half's ``K/2`` in ``(mid, hi]``; per part a list (slot) of lists
+        and its second half's ``K/2 - 1`` in ``(mid, hi)`` (its last sample stays too: where a
+        hit band ends at its least ``B + R``, that is ``hi``, and a maximum just before it took
+        the sample when it could move: trained fields, labels off by 0.05); per part a list (slot) of lists
         (sample) of arrays (ray). ``minima``: the minima of each (slot, ray) pair's ``F`` at
         the kinks and bends of its ``B`` (:meth:`_kink_minima`)."""
         kp, kq = self._tail_samples()
@@ -1778,7 +1785,7 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         return [self._snapped_positions(sdf, hi, extra, kp + 1, kp, kinks=minima) if kp else empty,
                 self._snapped_positions(sdf, extra, tail, kq, kq, kinks=minima),
                 self._snapped_positions(sdf, lo, mid, k1, k1 - 1, True, kinks=minima) if k1 > 1 else empty,
-                self._snapped_positions(sdf, mid, hi, k2, k2, kinks=minima) if k2 else empty]
+                self._snapped_positions(sdf, mid, hi, k2, k2 - 1, kinks=minima) if k2 > 1 else empty]
 
     @staticmethod
     def _kink_minima(sdf, kinks: list[mi.Float], bends: tuple[list[mi.Float], list[mi.Float]] = ([], []),
@@ -1989,10 +1996,11 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         (:meth:`_sub_sample`); ``residual_tail_scan`` points per cell (the last at the nominal
         position) are scanned, over the cells of the ``k`` moved samples and, where ``k <
         k_sub``, the fixed next sample's. Every scan point that is a local extremum of the scan
-        (by more than :data:`SNAP_PROMINENCE`) places a sample at the vertex of the parabola
-        through it and its two neighbours; ``kinks`` (per pair, ascending, with ``F`` there,
+        (by more than :data:`SNAP_PROMINENCE`) places a sample between its two neighbours
+        (:meth:`_refined_extrema`: golden-section steps; the vertex of the parabola through
+        the three missed the extrema of trained residual fields by up to 0.14 m); ``kinks`` (per pair, ascending, with ``F`` there,
         :meth:`_kink_minima`), the minima of ``F`` at kinks and sharp bends of ``B``, place one
-        each exactly (a parabola across a kink misses it by up to a cell), as the event of the
+        each exactly (a search across a kink misses it by up to a cell), as the event of the
         scan point before it where that has no extremum, else of the one after it (a second
         kink in one scan interval goes without), and the scan sees them as points of its own: an extremum
         test next to a kink compares with the kink's value (the scan point beyond it can hide a
@@ -2037,7 +2045,7 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         values = sdf(flat, len(ts))
         v = [sdf.spread(values, i) for i in range(len(ts))]
         # the local extrema of the scan and the kinks of B where F has a local minimum (see
-        # _kink_minima; exact, where the scan's parabolas on either side would miss them), in
+        # _kink_minima; exact, where a search between the scan points on either side would miss them), in
         # order along the ray: the j-th of q takes the first sample after the last one taken,
         # at its own cell's unless that would leave too few samples for the q - j after it.
         # A kink on the fixed samples around the cells (the deepest point, a band's centre)
@@ -2053,7 +2061,7 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
                 here, at = here | inside, dr.select(inside, kt, at)
             return here, at
 
-        events = []
+        events = []  # per scan point: (event, place, cell, bracket low, bracket high, sign)
         for m in range(1, len(ts)):
             x0, x1 = ts[m - 1], ts[m]
             cell = mi.UInt32(min((m + per - 1) // per, k))
@@ -2061,10 +2069,13 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
             # before it where that has no extremum, else m's (an extremum at m then goes
             # without: three features within two scan intervals)
             event, at = kink_in(x0, x1)
+            # sign: 1 a maximum, -1 a minimum, 0 a kink (placed exactly)
+            sign, b_lo, b_hi = mi.Int32(0), x0, x1
             if m > 1:
-                prev_event, prev_at, prev_cell = events[-1]
+                prev_event, prev_at, prev_cell, prev_lo, prev_hi, prev_sign = events[-1]
                 to_prev = event & ~prev_event
-                events[-1] = (prev_event | to_prev, dr.select(to_prev, at, prev_at), prev_cell)
+                events[-1] = (prev_event | to_prev, dr.select(to_prev, at, prev_at), prev_cell, prev_lo, prev_hi,
+                              dr.select(to_prev, 0, prev_sign))
                 event &= ~to_prev
             if m < len(ts) - 1:
                 x2 = ts[m + 1]
@@ -2078,29 +2089,32 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
                     x2, f2 = dr.select(right, kt, x2), dr.select(right, kf, f2)
                 extremum = ((f1 > f0) & (f1 >= f2)) | ((f1 < f0) & (f1 <= f2))
                 extremum &= dr.maximum(dr.abs(f1 - f0), dr.abs(f1 - f2)) > SNAP_PROMINENCE
-                # vertex of the parabola through the three points
-                d0, d2 = x1 - x0, x1 - x2
-                num = d0 * d0 * (f1 - f2) - d2 * d2 * (f1 - f0)
-                den = d0 * (f1 - f2) - d2 * (f1 - f0)
-                vertex = dr.select(dr.abs(den) > 0.0, x1 - 0.5 * num / dr.select(den == 0.0, 1.0, den), x1)
-                at = dr.select(event, at, dr.clip(vertex, x0, x2))
+                # placed between x0 and x2 once taken (_refined_extrema)
+                scanned = extremum & ~event
+                at = dr.select(event, at, x1)
+                sign = dr.select(scanned, dr.select(f1 > f0, 1, -1), sign)
+                b_lo, b_hi = x0, x2
                 event |= extremum
-            events.append((event, at, cell))
+            events.append((event, at, cell, b_lo, b_hi, sign))
         q = mi.UInt32(0)
-        for event, _, _ in events:
+        for event, *_ in events:
             q += dr.select(event, 1, 0)
         pos = list(nominal[1:k + 1])
         taken = [mi.Bool(False) for _ in range(k)]
+        # per sample the bracket and sign of the extremum that took it (sign 0: none, a kink)
+        brackets = [(mi.Float(0.0), mi.Float(0.0), mi.Int32(0)) for _ in range(k)]
         last, j = mi.UInt32(0), mi.UInt32(0)  # the last sample taken (1-based; 0: none), events
-        for event, at, cell in events:
+        for event, at, cell, b_lo, b_hi, sign in events:
             j = j + dr.select(event, 1, 0)
             slot = dr.maximum(last + 1, dr.minimum(cell, (k + j) - dr.minimum(q, k + j)))
             take = event & (slot <= k)
             for i in range(1, k + 1):
                 here = take & (slot == i)
                 pos[i - 1] = dr.select(here, at, pos[i - 1])
+                brackets[i - 1] = tuple(dr.select(here, new, old) for new, old in zip((b_lo, b_hi, sign), brackets[i - 1]))
                 taken[i - 1] |= here
             last = dr.select(take, slot, last)
+        pos = self._refined_extrema(sdf, pos, brackets)
         # the samples no extremum took keep their nominal places, clipped between the taken
         # ones around them: the samples stay sorted
         low = mi.Float(-dr.inf)
@@ -2115,6 +2129,48 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         # alone, re-reading the scan values once per position)
         dr.eval(pos)
         return [[block_of(p, s_, n) for p in pos] for s_ in range(n_slots)]
+
+    @staticmethod
+    def _refined_extrema(sdf, pos: list[mi.Float], brackets: list[tuple]) -> list[mi.Float]:
+        """``pos`` (per moved sample, per pair) with the samples that a scanned extremum took
+        (``brackets[i] = (low, high, sign)``, sign 1: a maximum, -1: a minimum, 0: none or a
+        kink) moved to it by :data:`SNAP_GOLDEN` golden-section steps between the scan points
+        around it, on ``F`` (``sdf``: the :class:`PairScan`). One search over the taken samples
+        of the valid pairs only: the untaken ones, most of them on an untrained field, cost
+        nothing."""
+        width, n_pos = dr.width(pos[0]), len(pos)
+        dr.eval(pos, brackets)  # one kernel of the scan (a gather evaluates its source alone)
+        # every (sample, pair) as one lane, sample-major: the positions, brackets and signs
+        # gathered in one kernel (concatenating them array by array launched a kernel per array
+        # and re-ran the scan's expression for each)
+        lane = dr.arange(mi.UInt32, n_pos * width)
+        which = lane // dr.opaque(mi.UInt32, width)
+        pair = lane - which * dr.opaque(mi.UInt32, width)
+
+        def flat_of(arrays, ty=mi.Float):
+            return pick([dr.gather(ty, a, pair) for a in arrays], which + 1)
+
+        flat = flat_of(pos)
+        lo, hi = (flat_of([b[a] for b in brackets]) for a in range(2))
+        sign = flat_of([b[2] for b in brackets], mi.Int32)
+        candidate = (sign != 0) & dr.gather(mi.Bool, sdf.valid, pair)
+        dr.eval(flat, lo, hi, sign, candidate)
+        # padded (compress_wide): the same kernels however many samples were taken, none included
+        lanes, real = compress_wide(candidate)
+        at_pair = dr.gather(mi.UInt32, pair, lanes)
+        sg = dr.gather(mi.Int32, sign, lanes)
+
+        def f(t):
+            value = sdf.at(at_pair, t)
+            return dr.select(sg == 1, -value, value)
+
+        brk = (dr.gather(mi.Float, lo, lanes), dr.gather(mi.Float, hi, lanes))
+        if sdf.traceable:
+            refined = golden_section([f], [brk], SNAP_GOLDEN, "vsrd_snap_refine")[0]
+        else:
+            refined = golden_minimum(f, *brk, SNAP_GOLDEN, False, "vsrd_snap_refine")
+        dr.scatter(flat, refined, lanes, real)
+        return [block_of(flat, i, width) for i in range(n_pos)]
 
     def _residual_minima(self, sdf, slot_views, count, picked: list[Picked]) -> list[mi.Float]:
         """Per slot, where the instance SDF ``F = B + R`` is least along the ray (detached;
@@ -2244,11 +2300,11 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         moved = list(sl.moved)
         tail1, moved = moved[:kp], moved[kp:]
         tail2, moved = moved[:kq], moved[kq:]
-        band1, band2 = moved[:k1 - 1], moved[k1 - 1:k1 - 1 + k2]
+        band1, band2 = moved[:k1 - 1], moved[k1 - 1:k1 - 2 + k2]
         if snapped:
             data(1, band1 + [mid])
             if k2:
-                data(k1 + 1, band2)
+                data(k1 + 1, band2 + [hi])
             if kp:
                 data(kk + 1, tail1)
             if kq:

@@ -9,6 +9,8 @@ compared with the accurate reference (and with a dense run of 2000 + 400 samples
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -17,8 +19,8 @@ import drjit as dr
 import mitsuba as mi
 
 from vsrd_plugins.sdf import instance_properties
-from vsrd_plugins.silhouette import (KINK_MINIMA, GapPeak, PairScan, VSRDSilhouetteIntegrator, golden_minimum,
-                                     illinois_root)
+from vsrd_plugins.silhouette import (KINK_MINIMA, GapPeak, PairScan, Slot, VSRDSilhouetteIntegrator,
+                                     golden_minimum, illinois_root)
 from vsrd_mi.bench.integrator import BenchConfig, central_differences, fd_steps, new_kernels, reference_grid
 
 BOX_KEYS = ("box_dims", "box_centre", "box_yaw", "box_velocity")
@@ -1036,6 +1038,45 @@ def test_moved_samples_see_a_maximum_before_a_kink():
     assert np.min(np.abs(moved[0] - kink)) <= 1e-5, (kink, moved[0])
     assert np.min(np.abs(moved[0] - t_max)) <= 0.1 * w, (t_max, moved[0])
     assert np.min(np.abs(moved[1] - t_max)) > 0.1 * w, (t_max, moved[1])
+
+
+def test_band_ending_at_its_least_sdf_keeps_that_sample():
+    """A hit band that ends at its least ``B + R`` (``hi``, where the band search put it) with
+    a maximum of ``B + R`` in the cell before it (trained residual fields): the maximum gets a
+    sample and the band's last sample stays at ``hi`` (:meth:`_snapped_slots`,
+    :meth:`_sub_bands`). When that sample could move, the maximum took it and the descent
+    to the minimum went unsampled (labels off by 0.05)."""
+    it = make({"centres": np.array([[0.0, 0.0, 10.0]]), "sizes": np.array([[1.8, 1.5, 4.2]]),
+               "yaws": np.zeros(1)}, residual=True)
+    k1, k2 = it._halves(it.cfg.band_samples)
+    kp, kq = it._tail_samples()
+    lo, mid, hi, extra, tail = 0.0, 4.0, 6.0, 8.0, 10.0
+    before_last = float(np.array(it._sub_sample(mi.Float(mid), mi.Float(hi), k2 - 1, k2))[0])
+    t_max = before_last + 0.5 * (hi - before_last)
+
+    def f(t):
+        bump = 0.3 * np.exp(-(((t - t_max) / (0.2 * (hi - before_last))) ** 2))
+        return np.where(t <= hi, 1.0 - 0.1 * t + bump, 1.0 - 0.1 * hi + 2.0 * (t - hi))
+
+    def at(pair, t):
+        return mi.Float(f(np.array(t, dtype=np.float64)).astype(np.float32))
+
+    def arr(x):
+        return mi.Float([x, x])
+
+    far = arr(-1.0)
+    sl = Slot(entry=arr(lo), lo=arr(lo), mid=arr(mid), hi=arr(hi), extra=arr(extra), peak=arr(extra),
+              peak_lambda=far, peak_a=arr(0.0), peak_b=arr(0.0), tail_end=arr(tail), deepest=arr(hi))
+    with dr.suspend_grad():
+        parts = it._snapped_slots(PairScan.of(mi.Bool([True, True]), at), [sl], [])
+        sl = replace(sl, moved=tuple(x for part in parts for x in part[0]))
+        runs = it._sub_bands(sl, it.cfg.band_samples, kp, kq, snapped=True)
+        first, count, value, _ = next(r for r in runs if r[0] == k1 + 1)
+        second_half = np.array([np.array(value(mi.UInt32(i)))[0] for i in range(1, count + 1)])
+    assert count == k2
+    assert second_half[-1] == hi, second_half
+    assert np.min(np.abs(second_half - t_max)) <= 0.1 * (hi - before_last), (t_max, second_half)
+    assert np.all(np.diff(second_half) >= 0.0), second_half
 
 
 def test_kink_minima_keep_the_kinks_where_the_sdf_has_a_local_minimum():

@@ -37,6 +37,9 @@ from . import losses
 from .config import AutolabelConfig
 
 INTEGRATOR = "vsrd"
+#: Eikonal points are drawn in each box scaled by this factor (the residual's surface lies inside
+#: the box; a margin beyond it keeps the field a distance there too).
+EIKONAL_SPREAD = 1.2
 
 
 class OptimisationError(RuntimeError):
@@ -161,11 +164,16 @@ class BoxOptimiser:
         self.bounds = image_bounds(obs.image_size)
         self.perm = np.arange(self.n)
         self._lanes = None
-        rng = np.random.default_rng(cfg.seed + 1)
-        self.eik_points = rng.uniform(-1.2, 1.2, size=(self.n, cfg.eikonal_points, 3))
+        # fresh eikonal points every step: a fixed set left the field free between its points
+        self.eik_rng = np.random.default_rng(cfg.seed + 1)
         self.box_keys = [f"{INTEGRATOR}.box_dims", f"{INTEGRATOR}.box_centre", f"{INTEGRATOR}.box_yaw"]
         self.vel_key = f"{INTEGRATOR}.box_velocity"
         self.rdf_keys = [k for k in self.params.keys() if k.startswith(f"{INTEGRATOR}.rdf_")]
+
+    def eikonal_points(self) -> np.ndarray:
+        """``(N, eikonal_points, 3)`` box-local points of this step's eikonal term, uniform in each
+        box enlarged by :data:`EIKONAL_SPREAD` (in units of its half-extents)."""
+        return self.eik_rng.uniform(-EIKONAL_SPREAD, EIKONAL_SPREAD, size=(self.n, self.cfg.eikonal_points, 3))
 
     # -- supervision ---------------------------------------------------------------------------
     def _projection_lanes(self) -> losses.ProjectionLanes:
@@ -264,8 +272,8 @@ class BoxOptimiser:
             total = l_proj + w.silhouette * l_sil
             l_eik = l_init = mi.Float(0.0)
             if residual_on and w.eikonal > 0:
-                l_eik = losses.eikonal_loss(it.field, dec, it.field.residual_weights(), self.eik_points,
-                                            cfg.eikonal_step)
+                l_eik = losses.eikonal_loss(it.field, dec, it.field.residual_weights(),
+                                            self.eikonal_points(), cfg.eikonal_step)
                 total = total + w.eikonal * l_eik
             if anchor is not None:
                 l_init = anchor.loss(dec)
