@@ -112,6 +112,7 @@ def reference_render(it, rays: tuple[np.ndarray, ...], s: float, margin: float):
 
 
 def labels_of(render, n_rays: int, chunk: int, n_inst: int) -> np.ndarray:
+    """``(n_inst, n_rays)`` labels of ``render(a, b)`` (rays ``a:b``), ``chunk`` rays at a time."""
     with dr.suspend_grad():
         out = []
         for a in range(0, n_rays, chunk):
@@ -119,14 +120,10 @@ def labels_of(render, n_rays: int, chunk: int, n_inst: int) -> np.ndarray:
     return np.concatenate(out, axis=1)
 
 
-def residual_params(it) -> dict[str, mi.Float]:
-    return dict(it.field.residual.params)
-
-
 def residual_gradient(it, render, n_rays: int, chunk: int, weights: np.ndarray) -> np.ndarray:
     """Gradient of ``sum weights * labels`` (rendered chunk by chunk, accumulated) w.r.t. the
     residual field's parameters."""
-    params = residual_params(it)
+    params = dict(it.field.residual.params)
     for v in params.values():
         dr.enable_grad(v)
         dr.clear_grad(v)
