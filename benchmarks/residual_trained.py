@@ -23,6 +23,8 @@ labels w.r.t. the box parameters and w.r.t. the residual field's parameters.
 Usage::
 
     python benchmarks/residual_trained.py --frames 8 14 20 --out benchmarks/residual_trained.json
+    python benchmarks/residual_trained.py --save-states runs/trained   # keep the trained fields
+    python benchmarks/residual_trained.py --load-states runs/trained   # a sampler change, same fields
 """
 
 from __future__ import annotations
@@ -234,6 +236,11 @@ def measure(it, rays, sharpness: list[float], grad_rays: int, seed: int) -> list
     return rows
 
 
+def state_name(frame: int) -> str:
+    """File of a target's trained state (``--save-states`` / ``--load-states``)."""
+    return f"frame_{frame:04d}.npz"
+
+
 def run_target(frame: int, args) -> dict:
     seq = Sequence(BUNDLED, sequence_name(0))
     spec = spec_for_frame(seq, frame, SelectionConfig())
@@ -243,20 +250,33 @@ def run_target(frame: int, args) -> dict:
                                                         / PRESETS["default"]().steps))
     start, init_ref, _ = initial_boxes(seq, spec, obs, cfg)
     opt = BoxOptimiser(obs, start, cfg, init_boxes=init_ref)
-    residual = opt.integrator.field.residual
-    untrained = {k: mi.Float(np.array(v)) for k, v in residual.params.items()}
-    t0 = time.time()
-    result = opt.run()
-    print(f"frame {frame}: {obs.num_instances} boxes, {result.steps} steps in {time.time() - t0:.0f} s", flush=True)
-    trained = {k: mi.Float(np.array(v)) for k, v in residual.params.items()}
-    it = opt.integrator
+    it, residual = opt.integrator, opt.integrator.field.residual
+    untrained = {k: np.array(v) for k, v in residual.params.items()}
+    state = None if args.load_states is None else np.load(args.load_states / state_name(frame))
+    if state is None:
+        t0 = time.time()
+        steps = opt.run().steps
+        print(f"frame {frame}: {obs.num_instances} boxes, {steps} steps in {time.time() - t0:.0f} s", flush=True)
+        o, d, t, _ = RaySampler(obs, opt.frames, args.rays, seed=args.seed).sample(opt.perm)
+        rays = (np.array(o).T.astype(np.float64), np.array(d).T.astype(np.float64), np.array(t).astype(np.float64))
+        boxes = {k: np.array(v) for k, v in it.field.params.items()}
+        trained = {k: np.array(v) for k, v in residual.params.items()}
+    else:  # the trained state of an earlier run: the sampler measured on the very same fields
+        steps = int(state["steps"])
+        rays = (state["o"], state["d"], state["t"])
+        boxes = {k[4:]: state[k] for k in state.files if k.startswith("box_")}
+        trained = {k[4:]: state[k] for k in state.files if k.startswith("rdf_")}
+        print(f"frame {frame}: {obs.num_instances} boxes, state of {args.load_states / state_name(frame)}", flush=True)
+    if args.save_states is not None:
+        args.save_states.mkdir(parents=True, exist_ok=True)
+        np.savez(args.save_states / state_name(frame), steps=steps, o=rays[0], d=rays[1], t=rays[2],
+                 **{f"box_{k}": v for k, v in boxes.items()}, **{f"rdf_{k}": v for k, v in trained.items()})
+    for k, v in boxes.items():
+        it.field.params[k] = mi.Float(v)
     it.field.use_residual = True
-    sampler = RaySampler(obs, opt.frames, args.rays, seed=args.seed)
-    o, d, t, _ = sampler.sample(opt.perm)
-    rays = (np.array(o).T.astype(np.float64), np.array(d).T.astype(np.float64), np.array(t).astype(np.float64))
-    out = {"frame": frame, "boxes": obs.num_instances, "steps": result.steps, "fields": {}}
+    out = {"frame": frame, "boxes": obs.num_instances, "steps": steps, "fields": {}}
     for name, params in (("trained", trained), ("untrained", untrained)):
-        residual.params.update({k: mi.Float(np.array(v)) for k, v in params.items()})
+        residual.params.update({k: mi.Float(v) for k, v in params.items()})
         print(f"  {name} field", flush=True)
         out["fields"][name] = measure(it, rays, args.sharpness, args.grad_rays, args.seed + frame)
     return out
@@ -271,6 +291,10 @@ def main() -> None:
     ap.add_argument("--sharpness", type=float, nargs="+", default=[1.0, 3.0, 10.0],
                     help="sharpness values along the schedule (tau = 1/s); gradients at the last")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--save-states", type=Path, help="write each target's trained boxes, field and rays here")
+    ap.add_argument("--load-states", type=Path,
+                    help="measure on the states an earlier --save-states wrote instead of training (training "
+                         "runs are not bit-reproducible: this compares samplers on the same fields)")
     ap.add_argument("--out", type=Path, default=Path("benchmarks/residual_trained.json"))
     args = ap.parse_args()
     t0 = time.time()

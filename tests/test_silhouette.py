@@ -1007,6 +1007,36 @@ def test_moved_samples_take_crowded_extrema_and_kinks():
     assert np.min(np.abs(moved() - kink)) > 1e-3
 
 
+def test_moved_samples_sit_on_skewed_extrema():
+    """A sharp, skewed minimum of ``B + R`` off the middle of its scan points (a trained
+    residual field's): the moved sample lands on it within 2 % of the cell, its value within
+    0.02 of the minimum (:meth:`_refined_extrema`'s golden-section steps; the vertex of the
+    parabola through the three scan points, the code before, a quarter of a cell off, 0.14 above)."""
+    it = make({"centres": np.array([[0.0, 0.0, 10.0]]), "sizes": np.array([[1.8, 1.5, 4.2]]),
+               "yaws": np.zeros(1)}, residual=True)
+    k, a, b = 6, 0.0, 6.0
+    lo, hi = [float(np.array(it._sub_sample(mi.Float(a), mi.Float(b), i, k))[0]) for i in (3, 4)]
+    w = hi - lo
+    t_min = lo + 0.45 * w  # between the cell's first two scan points (1/3, 2/3)
+
+    def f(t):
+        u = t - t_min
+        # steep on the left, shallow on the right, a line far from it
+        return 0.05 * t - 0.3 * np.exp(-np.where(u < 0.0, (u / (0.05 * w)) ** 2, np.abs(u) / (0.4 * w)))
+
+    def at(pair, t):
+        return mi.Float(f(np.array(t, dtype=np.float64)).astype(np.float32))
+
+    with dr.suspend_grad():
+        sdf = PairScan.of(mi.Bool([True, True]), at)
+        pos = np.array([np.array(p)[0] for p in it._snapped_positions(
+            sdf, [mi.Float([a, a])], [mi.Float([b, b])], k, k)[0]])
+    assert np.all(np.diff(pos) >= 0.0), pos
+    near = pos[np.argmin(np.abs(pos - t_min))]
+    assert abs(near - t_min) <= 0.02 * w, (t_min, pos)
+    assert f(near) - f(t_min) <= 0.02
+
+
 def test_moved_samples_see_a_maximum_before_a_kink():
     """A maximum of ``B + R`` just before a kink minimum, with ``F`` rising steeply after the
     kink: the scan points on either side of the maximum and the kink show ``F`` rising, but
