@@ -42,7 +42,7 @@ r"""Instance-aware NeuS silhouette integrator (``vsrd_silhouette``).
      encoding's highest frequency apart (0: evaluate ``R`` at every scan point and sample).
      Where a ray batch is dense enough that tabulating ``R`` per instance costs less, those
      grid values come from a box-local lattice spaced ``residual_lattice`` radians apart
-     (tricubic; 0: never). (Default: 0.5, 0.35)
+     (tricubic; 0: never). (Default: 0.35, 0.35)
  * - residual_sparse_gradients
    - |bool|
    - Adaptive sampling with the residual: samples strictly inside a monotone run of the scene
@@ -719,8 +719,12 @@ class SamplingConfig:
     residual_tail_scan: int = 3
     #: With the residual search: exact residual values per band spaced over the enlarged box's
     #: chord, interpolated for the scans (0: every scan point evaluates the residual); see
-    #: :meth:`VSRDSilhouetteIntegrator._chord_grid`.
-    residual_grid: float = 0.5
+    #: :meth:`VSRDSilhouetteIntegrator._chord_grid`. 0.5 resolved the residual at its
+    #: initialisation, not a trained one, whose features are sharper than the encoding's highest
+    #: frequency (``benchmarks/residual_trained.py`` on saved trained fields, s = 3: max 0.014 /
+    #: 0.038 / 0.037 at 0.5, 0.008 / 0.012 / 0.017 at 0.35, 0.012 on one field evaluating the
+    #: residual everywhere; step time 1.05-1.16x).
+    residual_grid: float = 0.35
     #: With the chord grid: tabulate the residual per instance on a box-local lattice this many
     #: radians of the encoding's highest frequency apart when that is cheaper than evaluating it
     #: at every chord-grid point (dense ray batches), and fill the grids from it (0: never); see
