@@ -45,7 +45,8 @@ import matplotlib.pyplot as plt  # noqa: E402
 
 from common import BUNDLED, write_results
 
-from vsrd_mi.bench.integrator import BOX_KEYS, cosine, deepest_points
+from vsrd_mi.bench.integrator import (BOX_KEYS, central_differences, cosine, labels_and_gradient, reference_grid,
+                                     weighted_loss)
 from vsrd_mi.data.kitti360 import Sequence, sequence_name
 from vsrd_mi.data.observations import load_observations
 from vsrd_mi.data.selection import SelectionConfig, spec_for_frame
@@ -93,24 +94,21 @@ def ray_stretches(boxes: dict, o: np.ndarray, d: np.ndarray, t: np.ndarray, marg
 
 
 def reference_render(it, rays: tuple[np.ndarray, ...], s: float, margin: float):
-    """``(render, m)``: a function rendering the reference labels of ``rays`` (NumPy ``o, d, t``)
-    at the integrator's current parameters, and the samples per ray."""
+    """``(render, m)``: a function rendering the reference labels of rays ``a:b`` of ``rays``
+    (NumPy ``o, d, t``) at the integrator's current boxes, and the samples per ray: a grid of
+    spacing ``min(REF_SPACING_S / s, REF_SPACING_MAX_M)`` over each ray's :func:`ray_stretches`
+    plus every box's deepest point (:func:`reference_grid`)."""
     o, d, t = rays
     boxes = it.field.numpy_boxes()
     lo, hi = ray_stretches(boxes, o, d, t, margin)
-    spacing = min(REF_SPACING_S / s, REF_SPACING_MAX_M)
-    m = int(np.ceil((hi - lo).max() / spacing)) + 2
-    grid = lo[:, None] + (hi - lo)[:, None] * np.linspace(0.0, 1.0, m)[None]
-    deep = np.clip(deepest_points(boxes, o, d, t, float(hi.max()) + 1.0), lo[:, None], hi[:, None])
-    samples = np.sort(np.concatenate([grid, deep], axis=1), axis=1)
-    mm = samples.shape[1]
+    m = int(np.ceil((hi - lo).max() / min(REF_SPACING_S / s, REF_SPACING_MAX_M))) + 2
 
     def render(a: int, b: int) -> list[mi.Float]:
-        ts = mi.Float(np.ascontiguousarray(samples[a:b].ravel(), dtype=np.float32))
+        ts, mm = reference_grid(boxes, o[a:b], d[a:b], t[a:b], hi[a:b], m, near=lo[a:b])
         return it.integrate_at(it.field.decode(), dr.arange(mi.UInt32, b - a),
                                *mi_of(tuple(x[a:b] for x in rays)), ts, mm)
 
-    return render, mm
+    return render, m + len(boxes["yaws"])
 
 
 def labels_of(render, n_rays: int, chunk: int, n_inst: int) -> np.ndarray:
@@ -131,46 +129,16 @@ def residual_gradient(it, render, n_rays: int, chunk: int, weights: np.ndarray) 
         dr.clear_grad(v)
     for a in range(0, n_rays, chunk):
         b = min(a + chunk, n_rays)
-        dr.backward(weighted_sum(render(a, b)[:it.field.n], weights[:, a:b]))
+        dr.backward(weighted_loss(render(a, b)[:it.field.n], mi_weights(weights[:, a:b])))
     out = np.concatenate([np.array(dr.grad(v)) for v in params.values()])
     for v in params.values():
         dr.disable_grad(v)
     return out
 
 
-def weighted_sum(labels: list[mi.Float], weights: np.ndarray) -> mi.Float:
-    loss = mi.Float(0.0)
-    for k, lab in enumerate(labels):
-        loss = loss + dr.sum(lab * mi.Float(weights[k].astype(np.float32)))
-    return loss
-
-
-def box_gradient(it, render, n_rays: int, weights: np.ndarray) -> np.ndarray:
-    """AD gradient of ``sum weights * labels`` w.r.t. the raw box parameters (:data:`BOX_KEYS`)."""
-    for k in BOX_KEYS:
-        dr.enable_grad(it.field.params[k])
-    dr.backward(weighted_sum(render(0, n_rays)[:it.field.n], weights))
-    out = np.concatenate([np.array(dr.grad(it.field.params[k])) for k in BOX_KEYS])
-    for k in BOX_KEYS:
-        it.field.params[k] = dr.detach(it.field.params[k])
-    return out
-
-
-def box_central_differences(it, loss, step: float) -> np.ndarray:
-    """Central differences of ``loss()`` w.r.t. every raw box parameter (:data:`BOX_KEYS`)."""
-    out = []
-    for k in BOX_KEYS:
-        base = np.array(it.field.params[k])
-        for j in range(len(base)):
-            vals = []
-            for sign in (1.0, -1.0):
-                x = base.copy()
-                x[j] += sign * step
-                it.field.params[k] = mi.Float(x.astype(np.float32))
-                vals.append(loss())
-            out.append((vals[0] - vals[1]) / (2.0 * step))
-        it.field.params[k] = mi.Float(base.astype(np.float32))
-    return np.array(out)
+def mi_weights(weights: np.ndarray) -> list[mi.Float]:
+    """Per instance its row of loss weights as a Dr.Jit array."""
+    return [mi.Float(w.astype(np.float32)) for w in weights]
 
 
 @contextmanager
@@ -225,8 +193,9 @@ def measure(it, rays, sharpness: list[float], grad_rays: int, seed: int) -> list
                 render_now = reference_render(it, sub_rays, s, margin)[0]
                 return float((labels_of(render_now, grad_rays, sub_chunk, n_inst) * w).sum())
 
-            fd = box_central_differences(it, reference_loss, FD_STEP)
-            g_box = box_gradient(it, lambda a, b: it.render_rays(*sub), grad_rays, w)
+            fd = central_differences(it, reference_loss,
+                                     {k: np.full(dr.width(it.field.params[k]), FD_STEP) for k in BOX_KEYS})
+            g_box = labels_and_gradient(it, iter([(lambda: it.render_rays(*sub), mi_weights(w))]))[1]
             g_res_ref = residual_gradient(it, sub_render, grad_rays, sub_chunk, w)
             g_res = residual_gradient(it, lambda a, b: it.render_rays(*sub), grad_rays, grad_rays, w)
             row.update({"grad_cosine_box_vs_fd": cosine(g_box, fd),

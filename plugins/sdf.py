@@ -575,19 +575,23 @@ def _row_major_view(buffer: mi.TensorXf, offset: int, rows: int, cols: int) -> n
     return view
 
 
-def concat(arrays: Sequence, width: int | None = None):
+def concat(arrays: Sequence, width: int | None = None, eval_after: Sequence[int] = ()):
     """Concatenate Float (or UInt32) arrays (differentiably) without baking sizes into kernels.
 
     ``dr.concat`` compiles its offsets into the kernel, so concatenating arrays whose widths change
     every call recompiles every call; here the offsets are opaque. With ``width`` the result has
-    that many lanes (zero padding after the arrays).
+    that many lanes (zero padding after the arrays). ``eval_after``: indices of arrays after
+    whose copy the result is evaluated (the copies up to there in a kernel of their own).
     """
     widths = [dr.width(a) for a in arrays]
     starts = np.concatenate([[0], np.cumsum(widths)[:-1]]).astype(int).tolist()
     total = width if width is not None else int(starts[-1] + widths[-1])
     out = dr.zeros(type(arrays[0]), total)
-    for a, w, s0 in zip(arrays, widths, starts):
+    evals = set(eval_after)
+    for i, (a, w, s0) in enumerate(zip(arrays, widths, starts)):
         dr.scatter(out, a, dr.arange(mi.UInt32, w) + dr.opaque(mi.UInt32, int(s0)))
+        if i in evals:
+            dr.eval(out)
     return out
 
 

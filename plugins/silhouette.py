@@ -650,15 +650,8 @@ def concat_groups(pieces: list[list]):
     so a concatenation in one go put two groups whose widths happened to match in one kernel
     (and one whose width matched no other's in a kernel of its own): kernels compiled anew at
     random steps, whenever the groups' sizes coincided differently."""
-    flat = [a for grp in pieces for a in grp]
-    out = dr.zeros(type(flat[0]), sum(dr.width(a) for a in flat))
-    start = 0
-    for grp in pieces:
-        for a in grp:
-            dr.scatter(out, a, dr.arange(mi.UInt32, dr.width(a)) + dr.opaque(mi.UInt32, start))
-            start += dr.width(a)
-        dr.eval(out)
-    return out
+    ends = np.cumsum([len(grp) for grp in pieces]) - 1
+    return concat([a for grp in pieces for a in grp], eval_after=ends.tolist())
 
 
 def block_of(values: mi.Float, b: int, n: int) -> mi.Float:
@@ -2094,9 +2087,7 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
                 extremum = ((f1 > f0) & (f1 >= f2)) | ((f1 < f0) & (f1 <= f2))
                 extremum &= dr.maximum(dr.abs(f1 - f0), dr.abs(f1 - f2)) > SNAP_PROMINENCE
                 # placed between x0 and x2 once taken (_refined_extrema)
-                scanned = extremum & ~event
-                at = dr.select(event, at, x1)
-                sign = dr.select(scanned, dr.select(f1 > f0, 1, -1), sign)
+                sign = dr.select(extremum & ~event, dr.select(f1 > f0, 1, -1), sign)
                 b_lo, b_hi = x0, x2
                 event |= extremum
             events.append((event, at, cell, b_lo, b_hi, sign))
@@ -2168,11 +2159,8 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
             value = sdf.at(at_pair, t)
             return dr.select(sg == 1, -value, value)
 
-        brk = (dr.gather(mi.Float, lo, lanes), dr.gather(mi.Float, hi, lanes))
-        if sdf.traceable:
-            refined = golden_section([f], [brk], SNAP_GOLDEN, "vsrd_snap_refine")[0]
-        else:
-            refined = golden_minimum(f, *brk, SNAP_GOLDEN, False, "vsrd_snap_refine")
+        refined = golden_minimum(f, dr.gather(mi.Float, lo, lanes), dr.gather(mi.Float, hi, lanes), SNAP_GOLDEN,
+                                 sdf.traceable, "vsrd_snap_refine")
         dr.scatter(flat, refined, lanes, real)
         return [block_of(flat, i, width) for i in range(n_pos)]
 

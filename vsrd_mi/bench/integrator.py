@@ -405,14 +405,17 @@ def deepest_points(boxes: dict[str, np.ndarray], o: np.ndarray, d: np.ndarray, t
 
 
 def reference_grid(boxes: dict[str, np.ndarray], o: np.ndarray, d: np.ndarray, time: np.ndarray,
-                   far: float, m: int) -> tuple[mi.Float, int]:
+                   far: float | np.ndarray, m: int, near: float | np.ndarray = 0.0) -> tuple[mi.Float, int]:
     """Sorted samples of the reference integral per ray: the uniform grid of ``m`` samples on
-    ``[0, far]`` plus every box's deepest point along the ray (:func:`deepest_points`). The grid
-    alone puts a ray's deepest sample up to a spacing away from the true minimum, so its labels
-    (and their finite differences, which then follow a fixed sample's one-sided face) would lag
-    the converged integral by up to ``s * spacing`` in ``Phi_s``'s argument."""
-    grid = np.broadcast_to(np.linspace(0.0, far, m), (len(o), m))
-    t = np.sort(np.concatenate([grid, deepest_points(boxes, o, d, time, far)], axis=1), axis=1)
+    ``[near, far]`` (numbers, or one per ray) plus every box's deepest point along the ray
+    (:func:`deepest_points`, clipped to that stretch). The grid alone puts a ray's deepest
+    sample up to a spacing away from the true minimum, so its labels (and their finite
+    differences, which then follow a fixed sample's one-sided face) would lag the converged
+    integral by up to ``s * spacing`` in ``Phi_s``'s argument."""
+    grid = np.broadcast_to(np.linspace(near, far, m, axis=-1), (len(o), m))
+    deep = deepest_points(boxes, o, d, time, float(np.max(far)))
+    deep = np.clip(deep, np.reshape(near, (-1, 1)), np.reshape(far, (-1, 1)))
+    t = np.sort(np.concatenate([grid, deep], axis=1), axis=1)
     return mi.Float(np.ascontiguousarray(t.ravel(), dtype=np.float32)), t.shape[1]
 
 
