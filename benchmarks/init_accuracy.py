@@ -1,6 +1,6 @@
 """Accuracy of the 3D attribute initialisation (VSRD++ §III-D) on synthetic KITTI-360 sequences.
 
-For every seed a sequence is generated with :func:`vsrd_mi.data.synth.generate_sequence`
+For every seed a sequence is generated with :func:`vsrd_mi.synth.generate_sequence`
 (cached under ``--data-dir``), target frames are selected as the pipeline does
 (:func:`vsrd_mi.data.selection.select_targets`, REFERENCE §5), and
 :func:`vsrd_mi.init.sequence.initialise_target` initialises every target instance from the
@@ -36,8 +36,8 @@ from vsrd_mi.data.kitti360 import Sequence, sequence_name
 from vsrd_mi.data.masks import tight_box
 from vsrd_mi.data.observations import opt_from_world
 from vsrd_mi.data.selection import select_targets
-from vsrd_mi.data.synth import generate_sequence
-from vsrd_mi.data.synth_config import SynthConfig
+from vsrd_mi.synth import generate_sequence
+from vsrd_mi.synth.config import SynthConfig
 from vsrd_mi.geometry.boxes import wrap_angle
 from vsrd_mi.geometry.boxes2d import iou
 from vsrd_mi.geometry.camera import box_to_2d, image_bounds

@@ -36,7 +36,8 @@ from vsrd_mi.data.kitti360 import Sequence
 from vsrd_mi.data.observations import load_observations
 from vsrd_mi.data.selection import SelectionConfig, spec_for_frame
 from vsrd_mi.evaluate.metrics import hungarian_pairs, yaw_error_mod_pi
-from vsrd_mi.optimise.autolabel import box_in_frame, initial_boxes
+from vsrd_mi.autolabel.job import initial_boxes
+from vsrd_mi.data.observations import box_in_frame
 from vsrd_mi.optimise.config import AutolabelConfig, default_config
 from vsrd_mi.optimise.optimiser import BoxOptimiser
 

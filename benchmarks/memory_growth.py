@@ -1,6 +1,6 @@
 """Memory over many targets in one process (issue: batches must not grow without bound).
 
-Runs :func:`vsrd_mi.optimise.autolabel.process_target` repeatedly in one process on the target
+Runs :func:`vsrd_mi.autolabel.job.process_target` repeatedly in one process on the target
 frames of a sequence (cycling through them, each run into a fresh output directory so nothing is
 skipped) and records the resident set size after every target. Kept AD graphs, cached kernels
 per target or leaked Dr.Jit arrays show up as a steady climb; a bounded process levels off after
@@ -62,7 +62,7 @@ def main() -> int:
     from vsrd_mi.batch.tasks import TargetTask
     from vsrd_mi.data.kitti360 import Sequence
     from vsrd_mi.data.selection import select_targets
-    from vsrd_mi.optimise.autolabel import process_target
+    from vsrd_mi.autolabel.job import process_target
     from vsrd_mi.optimise.config import default_config
 
     seq = Sequence(args.root, args.sequence)

@@ -33,7 +33,7 @@ from vsrd_mi.bench import integrator as bench
 from vsrd_mi.data.kitti360 import Sequence
 from vsrd_mi.data.selection import SelectionConfig, spec_for_frame
 from vsrd_mi.data.observations import load_observations
-from vsrd_mi.optimise.autolabel import initial_boxes
+from vsrd_mi.autolabel.job import initial_boxes
 from vsrd_mi.optimise.config import default_config
 from vsrd_mi.optimise.optimiser import BoxOptimiser
 

@@ -50,7 +50,7 @@ from vsrd_mi.bench.integrator import (BOX_KEYS, central_differences, cosine, lab
 from vsrd_mi.data.kitti360 import Sequence, sequence_name
 from vsrd_mi.data.observations import load_observations
 from vsrd_mi.data.selection import SelectionConfig, spec_for_frame
-from vsrd_mi.optimise.autolabel import initial_boxes
+from vsrd_mi.autolabel.job import initial_boxes
 from vsrd_mi.optimise.config import PRESETS
 from vsrd_mi.optimise.optimiser import BoxOptimiser, RaySampler
 

@@ -1,4 +1,4 @@
-"""Sequence-level consensus of parked cars (vsrd_mi.optimise.consensus).
+"""Sequence-level consensus of parked cars (vsrd_mi.autolabel.consensus).
 
 The target results are built from the bundled scene's ground truth: every parked car's box is
 perturbed per target by offsets that cancel (+d, -d, 0, ...), so the fused box must be the ground
@@ -23,7 +23,7 @@ from vsrd_mi.data.selection import SelectionConfig, select_targets
 from vsrd_mi.export.kitti_labels import box_from_label, parse_label_line, read_labels, write_labels
 from vsrd_mi.geometry.boxes import Box3D
 from vsrd_mi.optimise.config import AutolabelConfig, ConsensusConfig, default_config, paper_config
-from vsrd_mi.optimise.consensus import apply_consensus, axis_mean, fuse_boxes, labels_in_frame
+from vsrd_mi.autolabel.consensus import apply_consensus, axis_mean, fuse_boxes, labels_in_frame
 
 ROOT = Path(__file__).resolve().parents[1] / "scenes" / "kitti360-synth"
 #: Per-target perturbations of parked cars, cycled; every pair / triple of consecutive ones cancels
@@ -197,7 +197,7 @@ def test_autolabel_cli_applies_the_consensus_after_its_targets(scene, tmp_path, 
     """``vsrd-mi autolabel`` runs the consensus after the batch (the batch itself replaced by
     writing the ground-truth-derived results); the per-target tasks do not carry its settings,
     so changing them reruns no target."""
-    from vsrd_mi.batch import runner
+    from vsrd_mi.autolabel import cli as autolabel_cli
     from vsrd_mi.batch.runner import BatchSummary
     from vsrd_mi.cli import main
 
@@ -209,7 +209,7 @@ def test_autolabel_cli_applies_the_consensus_after_its_targets(scene, tmp_path, 
         write_results(seq, specs, tmp_path)
         return BatchSummary(done=len(tasks))
 
-    monkeypatch.setattr(runner, "run_batch", fake_batch)
+    monkeypatch.setattr(autolabel_cli, "run_batch", fake_batch)
     assert main(["autolabel", str(ROOT), "--sequence", "0", "--out", str(tmp_path), "--no-progress",
                  "--set", "consensus.gate=1.5"]) == 0
     assert seen_tasks and all("consensus" not in t.config for t in seen_tasks)
@@ -220,11 +220,10 @@ def test_autolabel_cli_applies_the_consensus_after_its_targets(scene, tmp_path, 
 
 def test_autolabel_cli_keeps_the_targets_labels_when_the_consensus_fails(scene, tmp_path, monkeypatch, capsys):
     """A consensus that cannot read its input is a warning: the batch's labels stay, exit code 0."""
-    from vsrd_mi.batch import runner
+    from vsrd_mi.autolabel import cli as autolabel_cli
     from vsrd_mi.batch.runner import BatchSummary
     from vsrd_mi.cli import main
     from vsrd_mi.errors import DataError
-    from vsrd_mi.optimise import autolabel
 
     seq, specs = scene
 
@@ -235,8 +234,8 @@ def test_autolabel_cli_keeps_the_targets_labels_when_the_consensus_fails(scene, 
     def broken(seq_dir, *args):
         raise DataError(Path(seq_dir) / "poses.txt", "NaN in the pose of frame 3")
 
-    monkeypatch.setattr(runner, "run_batch", fake_batch)
-    monkeypatch.setattr(autolabel, "apply_consensus", broken)
+    monkeypatch.setattr(autolabel_cli, "run_batch", fake_batch)
+    monkeypatch.setattr(autolabel_cli, "apply_consensus", broken)
     assert main(["autolabel", str(ROOT), "--sequence", "0", "--out", str(tmp_path), "--no-progress"]) == 0
     err = capsys.readouterr().err
     assert "consensus of parked cars skipped" in err and "NaN in the pose of frame 3" in err

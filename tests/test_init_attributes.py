@@ -434,8 +434,8 @@ def test_initialise_on_small_generated_sequence(tmp_path):
     """1 seed, 5 frames at 3/4 KITTI-360 resolution from the synthetic generator; ground truth
     used for scoring only."""
     from vsrd_mi.data.kitti360 import Sequence, sequence_name
-    from vsrd_mi.data.synth import generate_sequence
-    from vsrd_mi.data.synth_config import RigConfig, SynthConfig
+    from vsrd_mi.synth import generate_sequence
+    from vsrd_mi.synth.config import RigConfig, SynthConfig
     from vsrd_mi.init.sequence import cam_to_opt, stereo_frames
 
     s = 0.75

@@ -545,7 +545,7 @@ def test_non_finite_gradient_in_last_step_emits_no_box(monkeypatch, target_obs):
 def test_batch_records_non_finite_target_as_failed(monkeypatch, tmp_path):
     from vsrd_mi.batch import TargetTask, run_batch
     from vsrd_mi.data.kitti360 import sequence_name
-    from vsrd_mi.optimise.autolabel import process_target
+    from vsrd_mi.autolabel.job import process_target
     poison_projection_loss(monkeypatch, 1, "value")
     seq = sequence_name(0)
     task = TargetTask(root=os.path.abspath(SCENE_ROOT), sequence=seq, frame=TARGET_FRAME,

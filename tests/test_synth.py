@@ -16,12 +16,12 @@ import pytest
 from vsrd_mi.cli import main as cli_main
 from vsrd_mi.data.kitti360 import Sequence, read_world_boxes
 from vsrd_mi.data.masks import tight_box
-from vsrd_mi.data.synth import SynthConfig, generate_sequence, render_frame
-from vsrd_mi.data.synth_cars import (GLASS, TYRE, ProceduralCarConfig, bundled_mesh_paths,
+from vsrd_mi.synth import SynthConfig, generate_sequence, render_frame
+from vsrd_mi.synth.cars import (GLASS, TYRE, ProceduralCarConfig, bundled_mesh_paths,
                                      load_car_mesh, procedural_car)
-from vsrd_mi.data.synth_config import RigConfig, TrafficConfig
-from vsrd_mi.data.synth_render import car_visibility
-from vsrd_mi.data.synth_world import WORLD_TO_G, PlacementError, build_world
+from vsrd_mi.synth.config import RigConfig, TrafficConfig
+from vsrd_mi.synth.render import car_visibility
+from vsrd_mi.synth.world import WORLD_TO_G, PlacementError, build_world
 from vsrd_mi.errors import DataError
 from vsrd_mi.geometry.boxes import wrap_angle
 from vsrd_mi.geometry.boxes2d import iou
@@ -349,7 +349,7 @@ BUNDLED = Path(__file__).resolve().parents[1] / "scenes" / "kitti360-synth"
 
 @pytest.mark.skipif(not BUNDLED.is_dir(), reason="bundled scene not present")
 def test_bundled_scene_is_reproducible(tmp_path):
-    from vsrd_mi.data.synth import write_annotations
+    from vsrd_mi.synth import write_annotations
 
     world = build_world(seq=0, frames=30, n_static=5, n_dynamic=2, seed=0)  # scenes/README.md
     write_annotations(tmp_path, world)

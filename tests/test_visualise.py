@@ -22,7 +22,7 @@ from vsrd_mi.data.selection import SelectionConfig, select_targets
 from vsrd_mi.export import visualise as V
 from vsrd_mi.geometry.boxes import Box3D
 from vsrd_mi.geometry.camera import NEAR_PLANE, project
-from vsrd_mi.optimise.autolabel import process_target
+from vsrd_mi.autolabel.job import process_target
 from vsrd_mi.optimise.config import default_config
 from vsrd_mi.optimise.optimiser import BoxOptimiser
 from vsrd_mi.scene.initial import default_initial_boxes

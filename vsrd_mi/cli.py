@@ -13,9 +13,9 @@ import sys
 
 #: Modules contributing sub-commands, in the order they appear in ``vsrd-mi --help``.
 SUBCOMMAND_MODULES: tuple[str, ...] = (
-    "vsrd_mi.data.cli",
-    "vsrd_mi.data.synth_cli",
-    "vsrd_mi.optimise.autolabel",
+    "vsrd_mi.scene.cli",
+    "vsrd_mi.synth.cli",
+    "vsrd_mi.autolabel.cli",
     "vsrd_mi.init.cli",
     "vsrd_mi.evaluate.cli",
     "vsrd_mi.batch.cli",

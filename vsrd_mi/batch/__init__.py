@@ -2,7 +2,7 @@
 
 A batch is a list of :class:`TargetTask` (one per target frame) and a job
 ``process(task) -> TargetResult`` (for autolabeling
-:func:`vsrd_mi.optimise.autolabel.process_target`).
+:func:`vsrd_mi.autolabel.job.process_target`).
 :func:`run_batch` keeps ``OUT/<sequence>/manifest.json`` up to date after every target (status,
 start/end time, seconds, error, outputs with size and SHA-256), skips targets that are already
 finished with intact outputs, reruns targets a killed run left ``running``, records a failing

@@ -2,7 +2,7 @@
 
 Both are plain, picklable dataclasses so that they travel unchanged to Dask workers. A job is any
 importable top-level function ``process(task: TargetTask) -> TargetResult`` (for autolabeling:
-:func:`vsrd_mi.optimise.autolabel.process_target`); it writes its outputs under
+:func:`vsrd_mi.autolabel.job.process_target`); it writes its outputs under
 :attr:`TargetTask.sequence_dir` (atomically, e.g. with :mod:`vsrd_mi.batch.atomic`) and lists
 them, relative to that directory, in :attr:`TargetResult.outputs`.
 """

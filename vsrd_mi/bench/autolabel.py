@@ -34,7 +34,7 @@ from ..optimise.config import (LONG_SCHEDULE_SHAPE_PRIOR, SHAPE_PRIOR_FIELDS, Au
 
 @dataclass(frozen=True)
 class BenchDataset:
-    """A synthetic sequence of the benchmark (see :func:`vsrd_mi.data.synth.generate_sequence`)."""
+    """A synthetic sequence of the benchmark (see :func:`vsrd_mi.synth.generate_sequence`)."""
 
     name: str
     n_static: int
@@ -129,7 +129,7 @@ def setting_config(setting: BenchSetting, steps: int | None = None) -> Autolabel
 
 def ensure_dataset(data_dir: Path, ds: BenchDataset) -> Path:
     """Root of the dataset's sequence (generated unless a finished copy is cached)."""
-    from ..data.synth import generate_sequence
+    from ..synth import generate_sequence
 
     root = data_dir / f"{ds.name}-s{ds.seed}-f{ds.frames}"
     done = root / "DONE"
@@ -161,7 +161,7 @@ def _worker(root: str, targets: list[int], cfg: dict, out_dir: str, result_path:
     import vsrd_mi  # noqa: F401  (variant and plugins)
     from ..batch.tasks import TargetTask
     from ..data.kitti360 import Sequence
-    from ..optimise.autolabel import process_target
+    from ..autolabel.job import process_target
 
     seq = Sequence(root, 0)
     rows = []
@@ -177,7 +177,7 @@ def _worker(root: str, targets: list[int], cfg: dict, out_dir: str, result_path:
                          "error": f"{type(exc).__name__}: {exc}"})
     # the sequence-level step `vsrd-mi autolabel` runs after its targets (labels of parked cars)
     from ..optimise.config import AutolabelConfig
-    from ..optimise.consensus import apply_consensus
+    from ..autolabel.consensus import apply_consensus
 
     t = time.perf_counter()
     try:

@@ -27,14 +27,10 @@ import numpy as np
 
 from ..errors import DataError
 from ..geometry.boxes import Box3D, yaw_from_direction
+from .labels import CAR_KITTI_ID, car_instance_value
+from .masks import car_masks
 from .png import read_png
 
-#: KITTI-360 label id of "car" (the value used in instance maps: ``26 * 1000 + instanceId``).
-CAR_LABEL_ID = 26
-#: The "KITTI id" of "car", which is what the 3D-box XML stores in ``semanticId``.
-CAR_KITTI_ID = 13
-#: Instance-map values are ``label_id * INSTANCE_FACTOR + instance_id``.
-INSTANCE_FACTOR = 1000
 #: Timestamp of static objects in the 3D-box XML (dynamic objects carry their frame index).
 STATIC_TIMESTAMP = -1
 
@@ -45,11 +41,6 @@ def sequence_name(seq: int | str) -> str:
         return f"2013_05_28_drive_{int(seq):04d}_sync"
     text = str(seq)
     return f"2013_05_28_drive_{int(text):04d}_sync" if text.isdigit() else text
-
-
-def car_instance_value(instance_id: int) -> int:
-    """Instance-map pixel value of the car with dataset ``instanceId`` (``26 * 1000 + instanceId``)."""
-    return CAR_LABEL_ID * INSTANCE_FACTOR + int(instance_id)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -500,7 +491,6 @@ class Sequence:
 
     def car_instances(self, frame: int) -> dict[int, np.ndarray]:
         """Boolean HxW mask of every car in ``frame``, keyed by pixel value (26001..26999)."""
-        from .masks import car_masks
         return car_masks(self.instance_map(frame))
 
     @cached_property

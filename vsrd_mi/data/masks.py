@@ -10,7 +10,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from .kitti360 import CAR_LABEL_ID, INSTANCE_FACTOR
+from .labels import CAR_LABEL_ID, INSTANCE_FACTOR
 
 #: Smallest and largest instance-map value of a car (``26 * 1000 + 1`` .. ``26 * 1000 + 999``).
 CAR_VALUE_MIN = CAR_LABEL_ID * INSTANCE_FACTOR + 1

@@ -16,6 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ..geometry.boxes import Box3D
+from ..geometry.camera import box_to_2d
 from .kitti360 import Sequence
 from .masks import SOFT_WEIGHT_SCALE_PX, passes_size_filter, soft_weight, tight_box
 from .selection import SelectionConfig, TargetSpec
@@ -155,3 +157,18 @@ def load_observations(seq: Sequence, spec: TargetSpec,
         image_paths_left=[seq.image_path(f, 0) for f in frames],
         image_paths_right=[seq.image_path(f, 1) for f in frames],
         baseline=seq.calibration.baseline, spec=spec)
+
+def box_in_frame(box: Box3D, obs: Observations, f: int) -> Box3D:
+    """Box (optimisation frame, target time) expressed in frame ``f``'s camera at its time.
+
+    The camera may be pitched: the result keeps only the heading's yaw about the camera's y
+    axis (what a KITTI label can hold). Project with :func:`footprint_in_frame`, not this box.
+    """
+    return box.at_offset(float(obs.dt[f])).transformed(np.linalg.inv(obs.cam_to_opt[f]))
+
+
+def footprint_in_frame(box: Box3D, obs: Observations, f: int) -> np.ndarray | None:
+    """2D footprint of the box (optimisation frame, target time) in frame ``f``'s image: the
+    exact projection through the full camera pose (a pitched camera included)."""
+    return box_to_2d(box, obs.K[f], world_to_cam=np.linalg.inv(obs.cam_to_opt[f]),
+                     image_size=obs.image_size, dt=float(obs.dt[f]))

@@ -28,27 +28,23 @@ import io
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Callable, Sequence
+from typing import Callable, Sequence
 
 import cv2
 import drjit as dr
 import mitsuba as mi
 import numpy as np
-
 from vsrd_plugins.silhouette import instance_colours
 
 from ..batch.atomic import atomic_write_bytes
+from ..data.kitti360 import Sequence as KittiSequence
+from ..data.observations import Observations, box_in_frame
 from ..geometry.boxes import BOX_EDGES, Box3D
 from ..geometry.camera import NEAR_PLANE, box_to_2d, project
 from ..geometry.iou3d import bev_footprint
-from ..optimise.autolabel import box_in_frame
 from ..optimise.losses import to_float
+from ..optimise.optimiser import BoxOptimiser, OptimisationResult
 from ..scene.sensors import pixel_rays
-
-if TYPE_CHECKING:
-    from ..data.kitti360 import Sequence as KittiSequence
-    from ..data.observations import Observations
-    from ..optimise.optimiser import BoxOptimiser, OptimisationResult
 
 log = logging.getLogger(__name__)
 

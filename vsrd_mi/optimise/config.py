@@ -192,7 +192,7 @@ class EarlyStop:
 @dataclass(frozen=True)
 class ConsensusConfig:
     """Sequence-level consensus of parked cars after every target is done (not in the paper;
-    :mod:`vsrd_mi.optimise.consensus`): each parked car's boxes from the targets that see it are
+    :mod:`vsrd_mi.autolabel.consensus`): each parked car's boxes from the targets that see it are
     fused (median centre and size, mean axis) and the fused box replaces them in the labels."""
 
     enabled: bool = True

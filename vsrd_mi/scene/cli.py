@@ -6,7 +6,14 @@ import argparse
 import sys
 from pathlib import Path
 
+from dataclasses import replace
+
+from ..data.kitti360 import Sequence
+from ..data.observations import ObservationConfig, load_observations
+from ..data.selection import SelectionConfig, spec_for_frame
 from ..errors import DataError
+from .builder import save_scene_xml
+from .initial import default_initial_boxes
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -27,14 +34,6 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Build and write the scene; a data problem is reported on stderr with exit code 2."""
-    from dataclasses import replace
-
-    from ..data.kitti360 import Sequence
-    from ..data.observations import ObservationConfig, load_observations
-    from ..data.selection import SelectionConfig, spec_for_frame
-    from ..scene.builder import save_scene_xml
-    from ..scene.initial import default_initial_boxes
-
     selection = SelectionConfig()
     if args.min_sources is not None:
         selection = replace(selection, min_sources=args.min_sources)

@@ -2,7 +2,7 @@
 
 One ray through the centre of every pixel (pixel (u, v) looks along ``K^-1 (u, v, 1)``); the
 instance label of a pixel is the label of the triangle its ray hits first, so masks are exact.
-Colours come from :mod:`vsrd_mi.data.synth_texture` at the hit point.
+Colours come from :mod:`vsrd_mi.synth.texture` at the hit point.
 """
 
 from __future__ import annotations
@@ -10,18 +10,18 @@ from __future__ import annotations
 import functools
 from dataclasses import dataclass
 
+import drjit as dr
+import mitsuba as mi
 import numpy as np
 
 import vsrd_mi  # noqa: F401  (selects the Mitsuba variant)
-import drjit as dr
-import mitsuba as mi
 
-from .synth_texture import (car_rgb, facade_rgb, kerb_rgb, lambert, road_rgb, sidewalk_rgb,
-                            sky_rgb, terrain_rgb)
+from ..data.labels import INSTANCE_FACTOR
 from ..geometry.camera import NEAR_PLANE, box_to_2d
-from .kitti360 import INSTANCE_FACTOR
-from .synth_world import (CAR_MATERIAL, FACADE, KERB, ROAD, SEM_SKY, SIDEWALK, TERRAIN, FrameMesh,
-                          SynthWorld)
+from .texture import (car_rgb, facade_rgb, kerb_rgb, lambert, road_rgb, sidewalk_rgb, sky_rgb,
+                      terrain_rgb)
+from .world import (CAR_MATERIAL, FACADE, KERB, ROAD, SEM_SKY, SIDEWALK, TERRAIN, FrameMesh,
+                    SynthWorld)
 
 
 @dataclass(frozen=True)

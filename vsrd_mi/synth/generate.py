@@ -1,7 +1,7 @@
 """Synthetic KITTI-360 sequences: posed stereo frames, exact instance masks and 3D boxes.
 
-:func:`generate_sequence` lays out a street (:mod:`~vsrd_mi.data.synth_world`), ray-casts both
-rectified cameras of every frame with Mitsuba (:mod:`~vsrd_mi.data.synth_render`) and writes the
+:func:`generate_sequence` lays out a street (:mod:`~vsrd_mi.synth.world`), ray-casts both
+rectified cameras of every frame with Mitsuba (:mod:`~vsrd_mi.synth.render`) and writes the
 KITTI-360 release layout (REFERENCE section 8)::
 
     calibration/perspective.txt, calibration/calib_cam_to_pose.txt
@@ -24,13 +24,14 @@ from typing import Callable, Sequence
 import cv2
 import numpy as np
 
+from ..data.kitti360 import CAR_KITTI_ID, STATIC_TIMESTAMP, frame_file, image_dir, instance_dir
+from ..data.kitti360_write import (world_box, write_boxes_xml, write_calibration,
+                                   write_cam0_to_world, write_imu_poses)
 from ..geometry.boxes import Box3D
-from .kitti360 import CAR_KITTI_ID, STATIC_TIMESTAMP, frame_file, image_dir, instance_dir
-from .kitti360_write import (world_box, write_boxes_xml, write_calibration, write_cam0_to_world,
-                             write_imu_poses)
-from .synth_config import SynthConfig
-from .synth_render import RayCaster, View, render_view
-from .synth_world import SynthWorld, build_world
+from .config import SynthConfig
+from .render import RayCaster, View, render_view
+from .world import SynthWorld, build_world
+
 
 @dataclass
 class SynthSummary:

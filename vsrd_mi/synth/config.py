@@ -1,4 +1,4 @@
-"""Configuration of the synthetic KITTI-360 generator (:mod:`vsrd_mi.data.synth`).
+"""Configuration of the synthetic KITTI-360 generator (:mod:`vsrd_mi.synth`).
 
 Every number the generator uses is a documented field here; defaults follow KITTI-360
 (camera rig, frame rate) and typical urban streets (lane and parking widths, car sizes, speeds).
@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from .synth_cars import ProceduralCarConfig
+from .cars import ProceduralCarConfig
 
 #: KITTI-360 ``R_rect_00`` (row-major 3x3), as in ``calibration/perspective.txt`` of the release.
 KITTI360_R_RECT_00 = (9.999740e-01, -7.141000e-03, -8.900000e-05,
@@ -200,7 +200,7 @@ class TextureConfig:
 
 @dataclass(frozen=True)
 class SynthConfig:
-    """All settings of :func:`vsrd_mi.data.synth.generate_sequence`."""
+    """All settings of :func:`vsrd_mi.synth.generate_sequence`."""
 
     rig: RigConfig = field(default_factory=RigConfig)
     ego: EgoConfig = field(default_factory=EgoConfig)

@@ -11,8 +11,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .synth_cars import GLASS, TYRE
-from .synth_config import TextureConfig
+from .cars import GLASS, TYRE
+from .config import TextureConfig
 
 _GOLDEN = np.uint64(0x9E3779B97F4A7C15)
 _MIX1 = np.uint64(0xBF58476D1CE4E5B9)

@@ -1,11 +1,14 @@
-"""``vsrd-mi synth``: write a synthetic KITTI-360 sequence (see :mod:`vsrd_mi.data.synth`)."""
+"""``vsrd-mi synth``: write a synthetic KITTI-360 sequence (see :mod:`vsrd_mi.synth`)."""
 
 from __future__ import annotations
 
 import argparse
 import sys
+from dataclasses import replace
 
 from ..errors import DataError
+from .generate import SynthConfig, generate_sequence
+from .world import PlacementError
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -31,11 +34,6 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from dataclasses import replace
-
-    from .synth import SynthConfig, generate_sequence
-    from .synth_world import PlacementError
-
     meshes = [] if args.procedural_only else args.mesh
     config = replace(SynthConfig(), first_frame=args.first_frame)
 

@@ -21,13 +21,14 @@ from typing import Sequence
 import numpy as np
 from shapely.geometry import Polygon
 
+from ..data.kitti360 import sequence_name
+from ..data.labels import CAR_LABEL_ID, INSTANCE_FACTOR, car_instance_value
+from ..data.observations import rotation_x
 from ..geometry.boxes import Box3D, yaw_matrix
-from .kitti360 import CAR_LABEL_ID, INSTANCE_FACTOR, car_instance_value, sequence_name
-from .observations import rotation_x
-from .synth_cars import CarModel, bundled_mesh_paths, load_car_mesh, procedural_car, scaled
-from .synth_config import RoadConfig, SynthConfig
+from .cars import CarModel, bundled_mesh_paths, load_car_mesh, procedural_car, scaled
+from .config import RoadConfig, SynthConfig
 
-# Materials of the world mesh faces (car materials are CAR_MATERIAL + synth_cars.BODY/GLASS/TYRE).
+# Materials of the world mesh faces (car materials are CAR_MATERIAL + cars.BODY/GLASS/TYRE).
 ROAD, KERB, SIDEWALK, TERRAIN, FACADE = 0, 1, 2, 3, 4
 CAR_MATERIAL = 10
 
@@ -301,7 +302,7 @@ class SynthCar:
 
 @dataclass(frozen=True)
 class Rig:
-    """Calibration of the stereo rig (see :class:`~vsrd_mi.data.synth_config.RigConfig`)."""
+    """Calibration of the stereo rig (see :class:`~vsrd_mi.synth.config.RigConfig`)."""
 
     K: np.ndarray  # 3x3
     baseline: float

@@ -43,7 +43,7 @@ from ..export.kitti_labels import KittiLabel, label_from_box, write_labels
 from ..geometry.boxes import Box3D
 from ..geometry.boxes2d import iou_matrix
 from ..geometry.camera import box_to_2d
-from .config import ConsensusConfig
+from ..optimise.config import ConsensusConfig
 
 
 @dataclass(frozen=True)

@@ -6,7 +6,7 @@ The ground-truth box of a placed car is the tight axis-aligned box of its vertic
 (:attr:`CarModel.box_min` / :attr:`CarModel.box_max`), so a model need not be centred.
 
 Mesh files (the two bundled CC0 meshes, or any given with ``--mesh``) follow the convention of
-``vsrd_mi/data/assets/README.md``: metres, +Y up, length along Z with the front at +Z, origin at
+``vsrd_mi/synth/assets/README.md``: metres, +Y up, length along Z with the front at +Z, origin at
 the bottom centre. The meshes are not watertight: they are rendered by ray casting, never voxelised.
 """
 

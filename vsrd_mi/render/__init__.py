@@ -1,1 +1,0 @@
-"""vsrd-mi render stage."""
