@@ -17,7 +17,7 @@ frame and fused:
   with the sign of the first inlier's heading.
 
 The fused box replaces every inlier's box in the labels of that inlier's group; its score is the
-confidence of REFERENCE §7 for the instance, recomputed over all those groups' frames (mean 2D
+confidence of docs/method.md §7 for the instance, recomputed over all those groups' frames (mean 2D
 IoU of the projected box and the instance's mask box, 0 where the instance has no mask). Moving
 cars, and parked cars seen by fewer than ``min_targets`` targets, keep their target's box. The
 per-target results (``boxes/%010d.json``) are never changed, so the step can be rerun at any
@@ -153,7 +153,7 @@ def labels_in_frame(boxes: list[Box3D], scores: list[float], cam_to_opt: np.ndar
 
 
 def mask_confidence(box: Box3D, seq: Sequence, frames: list[int], reference: np.ndarray) -> float:
-    """REFERENCE §7's confidence of one parked box with a known instance id: mean over ``frames``
+    """docs/method.md §7's confidence of one parked box with a known instance id: mean over ``frames``
     of the 2D IoU of its projection and the instance's mask box (0 without either).
     ``reference`` maps the world to the box's frame."""
     ious = []

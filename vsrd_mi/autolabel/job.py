@@ -2,7 +2,7 @@
 
 :func:`process_target` is the batch job (:mod:`vsrd_mi.batch`): load the target's observations,
 initialise boxes (stereo initialisation or the documented default), optimise, compute the
-confidence (REFERENCE §7) and write, atomically,
+confidence (docs/method.md §7) and write, atomically,
 
 * ``labels/%010d.txt``: KITTI labels for the target and every frame of its group (boxes moved
   into each frame by pose and, for dynamic cars, by velocity), score = confidence;
@@ -35,7 +35,7 @@ from .consensus import labels_in_frame
 
 
 def confidence(boxes: list[Box3D], obs: Observations) -> np.ndarray:
-    """Per-box confidence (REFERENCE §7): mean 2D IoU of projected vs mask boxes over the frames
+    """Per-box confidence (docs/method.md §7): mean 2D IoU of projected vs mask boxes over the frames
     of the target's group (target included), Hungarian-matched (maximised); in [0, 1]."""
     frames = np.flatnonzero(obs.in_group | (np.arange(obs.num_frames) == 0))
     n = len(boxes)

@@ -1,4 +1,4 @@
-"""Configuration of the VSRD++ box optimisation (paper Method §III-B..E, REFERENCE §3-4, §7).
+"""Configuration of the VSRD++ box optimisation (paper Method §III-B..E, docs/method.md §3-4, §7).
 
 Two presets: :func:`paper_config` reproduces the paper's schedule (3000 steps, 1000 box-only
 warm-up steps, 1000 rays, dense sampling); :func:`default_config` is the fast default (adaptive
@@ -155,7 +155,7 @@ class CarProfile:
 
 @dataclass(frozen=True)
 class LearningRates:
-    """Adam learning rates per parameter group (REFERENCE §4), decayed exponentially to
+    """Adam learning rates per parameter group (docs/method.md §4), decayed exponentially to
     ``decay`` times their start over the whole run."""
 
     box: float = 1e-2
@@ -167,7 +167,7 @@ class LearningRates:
 
 @dataclass(frozen=True)
 class Schedule:
-    """Sharpness and softmin-temperature annealing (REFERENCE §3): cosine in ``1/s`` from
+    """Sharpness and softmin-temperature annealing (docs/method.md §3): cosine in ``1/s`` from
     ``1/s_start`` to ``1/s_end`` and in ``tau`` from ``tau_start`` to ``tau_end`` over the run."""
 
     inv_sharpness_start: float = 1.0
