@@ -208,6 +208,36 @@ class ConsensusConfig:
             raise ValueError(f"ConsensusConfig: gate must be > 0 and min_targets >= 2, got {self.gate}, {self.min_targets}")
 
 
+#: Accepted values of :attr:`HeadingConfig.prior`.
+HEADING_PRIORS = ("none", "right-hand", "left-hand")
+
+
+@dataclass(frozen=True)
+class HeadingConfig:
+    """Front / back decision of parked cars (not in the paper; :mod:`vsrd_mi.optimise.heading`)."""
+
+    #: Decide headings at all (off: boxes keep the optimiser's yaw).
+    enabled: bool = True
+    #: Smallest mean-IoU difference between the two ends that turns a box. Silhouette IoUs of
+    #: the two ends of a well-fitted box differ by a few hundredths when the views show the car's
+    #: side; 0.01 is below that and above the rasteriser's own noise (a pixel's share of a small
+    #: car's silhouette).
+    min_evidence: float = 0.01
+    #: Frames whose mask has fewer pixels than this take no part (too small to show a shape).
+    min_mask_pixels: int = 200
+    #: Which way parked cars are assumed to face when the silhouettes cannot tell: ``"none"`` keeps
+    #: the optimiser's yaw; ``"right-hand"`` (traffic drives on the right, the ego along +z of the
+    #: optimisation frame) faces a car on the right (x > 0) along +z and one on the left along -z;
+    #: ``"left-hand"`` the mirror image.
+    prior: str = "none"
+
+    def __post_init__(self) -> None:
+        if self.prior not in HEADING_PRIORS:
+            raise ValueError(f"heading.prior must be one of {HEADING_PRIORS}, got {self.prior!r}")
+        if self.min_evidence < 0 or self.min_mask_pixels < 0:
+            raise ValueError("heading.min_evidence and heading.min_mask_pixels must be >= 0")
+
+
 @dataclass(frozen=True)
 class AutolabelConfig:
     """Everything the per-target optimisation needs; defaults are the fast default preset."""
@@ -250,6 +280,7 @@ class AutolabelConfig:
     schedule: Schedule = field(default_factory=Schedule)
     early_stop: EarlyStop = field(default_factory=EarlyStop)
     consensus: ConsensusConfig = field(default_factory=ConsensusConfig)
+    heading: HeadingConfig = field(default_factory=HeadingConfig)
 
     def replace(self, **kw) -> "AutolabelConfig":
         return dataclasses.replace(self, **kw)
@@ -300,6 +331,7 @@ class AutolabelConfig:
         d["schedule"] = Schedule(**d.get("schedule", {}))
         d["early_stop"] = EarlyStop(**d.get("early_stop", {}))
         d["consensus"] = ConsensusConfig(**d.get("consensus", {}))
+        d["heading"] = HeadingConfig(**d.get("heading", {}))
         return AutolabelConfig(**d)
 
 
