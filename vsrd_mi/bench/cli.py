@@ -16,6 +16,7 @@ BENCH_MODULES: tuple[str, ...] = (
     "vsrd_mi.bench.autolabel",
     "vsrd_mi.bench.init_accuracy",
     "vsrd_mi.bench.memory",
+    "vsrd_mi.bench.real_sample",
 )
 
 
