@@ -16,7 +16,7 @@ from vsrd_mi.init.attributes import (dominant_yaw, estimate_velocity, fit_footpr
                                      to_target_time)
 from vsrd_mi.init.config import FootprintConfig, OrientationConfig, PointCloudConfig, VelocityConfig
 from vsrd_mi.init.icp import icp_translation, register_translation
-from vsrd_mi.init.pointcloud import density_filter, erode_mask, filter_cloud, main_cluster
+from vsrd_mi.init.pointcloud import cluster_labels, density_filter, erode_mask, filter_cloud, main_cluster
 
 CAR = np.array([1.8, 1.5, 4.3])
 
@@ -479,3 +479,39 @@ def test_init_accuracy_benchmark(tmp_path):
     assert o["dynamic_accuracy"] >= 0.9
     assert o["heading_error_moving_median_deg"] <= 10.0
     assert o["speed_error_moving_median_mps"] <= 1.0
+
+
+def brute_force_components(points: np.ndarray, eps: float) -> np.ndarray:
+    """Connected components of the graph of all pairs within ``eps`` (dense distance matrix),
+    numbered by their first point: the reference of :func:`cluster_labels`."""
+    n = len(points)
+    close = np.linalg.norm(points[:, None] - points[None], axis=2) <= eps
+    labels = np.full(n, -1)
+    for start in range(n):
+        if labels[start] >= 0:
+            continue
+        labels[start] = label = labels.max() + 1
+        stack = [start]
+        while stack:
+            for j in np.flatnonzero(close[stack.pop()] & (labels < 0)):
+                labels[j] = label
+                stack.append(j)
+    return labels
+
+
+@pytest.mark.parametrize("case", ["blobs", "uniform", "grid ties", "sparse", "tiny"])
+def test_cluster_labels_match_the_full_radius_graph(case):
+    rng = np.random.default_rng(11)
+    if case == "blobs":       # a car-like cloud, a neighbour 1.2 m away and strays
+        pts = np.concatenate([rng.normal(0, 0.5, (500, 3)), rng.normal(0, 0.2, (60, 3)) + [3.0, 0, 0],
+                              rng.uniform(-6, 6, (15, 3))])
+    elif case == "uniform":   # many components of every size
+        pts = rng.uniform(0, 12, (700, 3))
+    elif case == "grid ties":  # neighbours exactly eps apart count as linked
+        pts = np.argwhere(rng.random((8, 8, 8)) < 0.3) * 0.4
+    elif case == "sparse":    # every point alone
+        pts = np.arange(30)[:, None] * np.array([[1.0, 0.0, 0.0]])
+    else:
+        pts = rng.normal(0, 1, (2, 3))
+    for eps in (0.8, 0.3):
+        np.testing.assert_array_equal(cluster_labels(pts, eps), brute_force_components(pts, eps))

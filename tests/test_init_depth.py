@@ -11,9 +11,10 @@ import pytest
 from vsrd_mi.errors import DataError
 from vsrd_mi.init.config import InitConfig, StereoConfig
 from vsrd_mi.init.depth import (DepthDirectory, depth_to_disparity, disparity_to_depth,
-                                load_depth_map, make_depth_source, save_depth_png, stereo_depth,
-                                stereo_disparity)
+                                load_depth_map, make_depth_source, matching_region, save_depth_png,
+                                stereo_depth, stereo_depth_in, stereo_disparity)
 from vsrd_mi.init.ground import GroundConfig, fit_ground_plane, road_points
+from vsrd_mi.init.pointcloud import warp_error
 
 REAL = Path("/work/shared/data/kitti360-real-0000")
 SEQ = "2013_05_28_drive_0000_sync"
@@ -185,3 +186,46 @@ def test_real_sgbm_depth_sees_ground_plane(frame):
     assert plane.tilt_deg() < 10.0
     assert plane.inlier_fraction > 0.5
     assert plane.tilt_deg(_read_real_up(frame)) < 3.0
+
+
+def test_warp_error_of_a_region_is_the_whole_images_there():
+    left, right = textured_pair(9, h=80, w=200, seed=3)
+    disp = stereo_disparity(left, right, StereoConfig(num_disparities=32))
+    full = warp_error(left, right, disp, window=3)
+    region = (slice(20, 60), slice(70, 150))
+    part = warp_error(left, right, disp, window=3, region=region)
+    inner = (slice(21, 59), slice(71, 149))          # the box filter's reach inside the region
+    np.testing.assert_array_equal(part[inner], full[inner])
+    outside = np.ones(part.shape, bool)
+    outside[region] = False
+    assert np.all(np.isinf(part[outside])) and np.isfinite(full[inner]).mean() > 0.8
+
+
+def test_matching_region_covers_the_masks_and_the_disparity_range():
+    cfg = StereoConfig(num_disparities=32, region_margin=4)
+    mask = np.zeros((80, 200), bool)
+    mask[30:40, 100:120] = True
+    rows, cols = matching_region(mask, cfg)
+    assert (rows.start, rows.stop) == (26, 44) and (cols.start, cols.stop) == (100 - 4 - 32, 124)
+    mask[:] = False
+    mask[5:10, 3:8] = True                          # at the left border: widened to the right
+    rows, cols = matching_region(mask, cfg)
+    assert (rows.start, rows.stop) == (1, 14) and (cols.start, cols.stop) == (0, 33)
+    assert matching_region(mask, StereoConfig(region_margin=None)) == (slice(0, 80), slice(0, 200))
+
+
+def test_region_depth_agrees_with_whole_image_depth_on_the_region():
+    left, right = textured_pair(12, h=100, w=240, seed=4)
+    K = np.array([[400.0, 0, 120], [0, 400.0, 50], [0, 0, 1]])
+    cfg = StereoConfig(num_disparities=32, region_margin=8)
+    mask = np.zeros((100, 240), bool)
+    mask[40:70, 120:200] = True
+    whole = stereo_depth(left, right, K, 0.5, cfg)
+    np.testing.assert_array_equal(stereo_depth_in(left, right, K, 0.5, (slice(0, 100), slice(0, 240)), cfg),
+                                  whole)
+    part = stereo_depth_in(left, right, K, 0.5, matching_region(mask, cfg), cfg)
+    assert np.all(np.isnan(part[:20])) and np.all(np.isnan(part[:, :80]))
+    both = np.isfinite(part[mask]) & np.isfinite(whole[mask])
+    assert both.mean() > 0.9
+    # SGBM's paths start at the region's edges: depths agree, not necessarily bit for bit
+    np.testing.assert_allclose(part[mask][both], whole[mask][both], rtol=0.02)

@@ -15,11 +15,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from scipy.optimize import least_squares
 from scipy.spatial import cKDTree
+from scipy.special import ndtr, stdtrit
 
 from ..geometry.boxes import Box3D, wrap_angle, yaw_from_direction
 from .config import FootprintConfig, InitConfig, OrientationConfig, VelocityConfig
-from .depth import depth_to_disparity, make_depth_source
+from .depth import bounding_region, depth_to_disparity, make_depth_source, matching_region, stereo_depth_in
 from .frames import StereoFrame
 from .icp import register_translation
 from .pointcloud import instance_cloud, warp_error
@@ -79,12 +81,25 @@ class InstanceInit:
 # Per-frame clouds
 # --------------------------------------------------------------------------------------------
 
+def masks_union(frame: StereoFrame) -> np.ndarray:
+    """HxW bool: the pixels of any of the frame's instance masks."""
+    union = np.zeros(frame.left.shape[:2], dtype=bool)
+    for mask in frame.masks.values():
+        union |= mask
+    return union
+
+
 def frame_depth(frame: StereoFrame, cfg: InitConfig) -> np.ndarray:
-    """Depth (m, NaN invalid) of a frame: its precomputed map, else ``cfg``'s depth source."""
+    """Depth (m, NaN invalid) of a frame: its precomputed map, else ``cfg``'s depth source
+    (SGBM only around the frame's masks, :func:`~vsrd_mi.init.depth.matching_region`, unless
+    ``cfg.stereo.region_margin`` is None)."""
     if frame.depth is not None:
         depth = np.asarray(frame.depth, dtype=np.float32).copy()
         depth[~(depth > 0)] = np.nan
         return depth
+    if cfg.depth_mode == "sgbm" and frame.right is not None and cfg.stereo.region_margin is not None:
+        region = matching_region(masks_union(frame), cfg.stereo)
+        return stereo_depth_in(frame.left, frame.right, frame.K, frame.baseline, region, cfg.stereo)
     source = make_depth_source(cfg)
     if source is None:
         raise ValueError("depth_mode 'none' computes no depth")
@@ -100,7 +115,9 @@ def frame_clouds(frame: StereoFrame, depth: np.ndarray, cfg: InitConfig) -> dict
     error = None
     if frame.right is not None:
         disparity = depth_to_disparity(depth, frame.K[0, 0], frame.baseline)
-        error = warp_error(frame.left, frame.right, disparity, cfg.cloud.warp_window)
+        # the error is read on the masks only: its box filter reaches window // 2 px beyond them
+        region = bounding_region(masks_union(frame), cfg.cloud.warp_window // 2 + 1)
+        error = warp_error(frame.left, frame.right, disparity, cfg.cloud.warp_window, region)
     out = {}
     for iid, mask in frame.masks.items():
         cloud = instance_cloud(mask, depth, frame.K, frame.cam_to_opt, cfg.cloud, error)
@@ -152,8 +169,7 @@ def critical_value(significance: float, effective_pairs: float) -> float:
         return float(significance)
     if effective_pairs <= 1.0:
         return float("inf")
-    from scipy.stats import norm, t
-    return float(t.ppf(norm.cdf(significance), effective_pairs - 1.0))
+    return float(stdtrit(effective_pairs - 1.0, ndtr(significance)))
 
 
 def velocity_pairs(offsets: list[int], cfg: VelocityConfig) -> list[tuple[int, int]]:
@@ -424,8 +440,6 @@ def fit_footprint(points: np.ndarray, yaw: float, cameras: np.ndarray,
             the target time.
     Returns (centre (3,), size (3,) = (w, h, l)).
     """
-    from scipy.optimize import least_squares
-
     length_ax, width_ax = _axes(yaw)
     basis = np.stack([width_ax, length_ax])              # rows: local x (width), local z (length)
     typical, largest = np.asarray(cfg.typical_size, float), np.asarray(cfg.max_size, float)

@@ -55,6 +55,12 @@ class StereoConfig:
     #: Pixels with depth beyond this (m) are marked invalid (disparity < f*B/max_depth): at
     #: 80 m on KITTI-360 one disparity step is already ~20 m of depth.
     max_depth: float = 80.0
+    #: The initialisation matches only the part of a frame around its instance masks: the rows
+    #: and columns of their union's bounding box, widened by this margin (px) and, to the left,
+    #: by the disparity range (:func:`vsrd_mi.init.depth.matching_region`); None matches the whole
+    #: image. SGBM's path costs then start at the region's edges instead of the image's, which
+    #: changes the disparity of some mask pixels (docs/speed.md, "Stereo initialisation").
+    region_margin: int | None = 32
 
 
 @dataclass

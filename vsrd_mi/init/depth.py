@@ -79,6 +79,30 @@ def stereo_disparity(left: np.ndarray, right: np.ndarray,
     return disp
 
 
+def bounding_region(mask: np.ndarray, margin: int, left_margin: int = 0) -> tuple[slice, slice]:
+    """Rows and columns of ``mask``'s bounding box widened by ``margin`` px (and to the left by
+    ``left_margin`` more), clipped to the image; the whole image for an empty mask."""
+    rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
+    if rows.size == 0:
+        return slice(0, mask.shape[0]), slice(0, mask.shape[1])
+    return (slice(max(int(rows[0]) - margin, 0), min(int(rows[-1]) + 1 + margin, mask.shape[0])),
+            slice(max(int(cols[0]) - margin - left_margin, 0), min(int(cols[-1]) + 1 + margin, mask.shape[1])))
+
+
+def matching_region(mask: np.ndarray, cfg: StereoConfig) -> tuple[slice, slice]:
+    """Part of the left image to match so that ``mask``'s pixels get a disparity:
+    :func:`bounding_region` with ``cfg.region_margin``, widened to the left by the disparity range
+    (a pixel matches the right image up to ``min_disparity + num_disparities`` columns to its
+    left, and SGBM leaves that many columns at a region's left edge without a disparity)."""
+    if cfg.region_margin is None:
+        return slice(0, mask.shape[0]), slice(0, mask.shape[1])
+    reach = cfg.min_disparity + cfg.num_disparities
+    rows, cols = bounding_region(mask, cfg.region_margin, reach)
+    if cols.stop - cols.start <= reach:  # only at the left border: the matcher needs more width
+        cols = slice(0, min(reach + 1, mask.shape[1]))
+    return rows, cols
+
+
 def disparity_to_depth(disparity: np.ndarray, focal: float, baseline: float,
                        max_depth: float = np.inf) -> np.ndarray:
     """``depth = focal * baseline / disparity`` (float32); NaN where the disparity is invalid
@@ -105,6 +129,16 @@ def stereo_depth(left: np.ndarray, right: np.ndarray, K: np.ndarray, baseline: f
     cfg = cfg or StereoConfig()
     disp = stereo_disparity(left, right, cfg)
     return disparity_to_depth(disp, float(np.asarray(K)[0, 0]), baseline, cfg.max_depth)
+
+
+def stereo_depth_in(left: np.ndarray, right: np.ndarray, K: np.ndarray, baseline: float,
+                    region: tuple[slice, slice], cfg: StereoConfig | None = None) -> np.ndarray:
+    """:func:`stereo_depth` of the rows and columns ``region`` only (NaN elsewhere, full size)."""
+    rows, cols = region
+    depth = np.full(left.shape[:2], np.nan, dtype=np.float32)
+    depth[rows, cols] = stereo_depth(np.ascontiguousarray(left[rows, cols]),
+                                     np.ascontiguousarray(right[rows, cols]), K, baseline, cfg)
+    return depth
 
 
 def load_depth_map(path: str | Path, shape: tuple[int, int] | None = None) -> np.ndarray:

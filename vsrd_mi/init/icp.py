@@ -14,6 +14,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
+from .pointcloud import subsample
+
 
 @dataclass(frozen=True)
 class ICPResult:
@@ -81,8 +83,6 @@ def register_translation(a: np.ndarray, b: np.ndarray, tree_a: cKDTree | None = 
     points); other keyword arguments go to :func:`icp_translation`. The result's ``iterations``
     is the sum over the runs and ``converged`` that of the chosen run.
     """
-    from .pointcloud import subsample
-
     tree_a = tree_a if tree_a is not None else cKDTree(a)
     tree_b = tree_b if tree_b is not None else cKDTree(b)
     src_a = a if max_source_points is None else subsample(a, max_source_points)
