@@ -1,355 +1,417 @@
-"""Run time versus error of the autolabeling: ``vsrd-mi bench autolabel [--json PATH] [--quick]``.
+"""Per-target speed and accuracy of the autolabeling, side by side with another git revision:
+``vsrd-mi bench autolabel [--rev REV] [--cold] [--sequence-frames 200]``.
 
-Synthetic KITTI-360 sequences with known boxes (a static-heavy and a dynamic-heavy one, fixed
-seeds; generated once and cached under ``--data-dir``) are autolabelled with a grid of settings
-(sampling, rays per step, band samples K, step budget / early stop, residual, velocity,
-initialisation). Every setting runs in its own process (so its peak resident memory is its own)
-on the same target frames, and is scored with the evaluator (:mod:`vsrd_mi.evaluate`) on those
-target frames: mean 3D / BEV IoU of Hungarian-matched pairs (static / dynamic) and AP|R40.
+Every measurement runs in a fresh process (:mod:`vsrd_mi.bench.autolabel_worker`) with
+``PYTHONPATH`` pointing at the code being measured: this checkout, and with ``--rev`` an export of
+that git revision (``git archive``), so both sides run on the same machine, targets and
+configuration (each revision builds the preset with its own defaults, plus the same ``--set``
+overrides). The runs are:
 
-Outputs (``--out``, default ``benchmarks/``): ``autolabel.json`` (everything), ``autolabel.csv``
-(one row per dataset x setting), ``autolabel_pareto.png`` (seconds per target vs 1 - recall-weighted
-mean 3D IoU, i.e. missed ground truth counts as IoU 0)
-and ``autolabel_ablation.md`` (the paper's ablation order on the dynamic-heavy set:
-projection only -> + silhouette -> + residual -> + velocity -> + initialisation, then the default).
+1. a warm-up round, one process per side over every target: fills the kernel cache and records
+   Dr.Jit's kernel history (kernels launched per step, new kernels in a target's first steps and
+   after them); its times are not used;
+2. ``--rounds`` timed rounds without the kernel history, the sides alternating (the order flips
+   every round), each a process over every target: per-target wall time and its phases, steps,
+   peak resident memory; the mean over rounds per target is reported, and the ratio of the two
+   sides per target and over all targets;
+3. with ``--cold``, the first target once per side with an empty kernel cache (``DRJIT_CACHE_DIR``
+   set to a new directory);
+4. with ``--sequence-frames N``, a synthetic sequence of N frames labelled end to end by
+   ``vsrd-mi autolabel`` per side: wall time and labelled frames per hour.
+
+The labels of every timed round are evaluated with this checkout's evaluator
+(:func:`vsrd_mi.evaluate.evaluate_sequence`, the target frames): mean 3D IoU of parked and
+moving cars, and the other matched-pair and AP figures it reports. Two rounds of one side giving
+different label files are reported (``deterministic``).
+
+Data (``--data``): ``bundled`` (``scenes/kitti360-synth``) and ``synth:STATIC,DYNAMIC,SEED[,FRAMES]``
+(generated once by :func:`vsrd_mi.synth.generate_sequence` and cached under ``--data-dir``).
+Results: ``benchmarks/autolabel.json`` (``--out``) and, with ``--sequence-frames``,
+``benchmarks/autolabel_sequence.json``.
 """
 
 from __future__ import annotations
 
 import argparse
-import csv
+import filecmp
 import json
 import os
-import resource
+import platform
 import shutil
 import subprocess
 import sys
+import tempfile
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
-from ..optimise.config import (LONG_SCHEDULE_SHAPE_PRIOR, SHAPE_PRIOR_FIELDS, AutolabelConfig, default_config,
-                               paper_config)
+import numpy as np
+
+from ..data.kitti360 import Sequence
+from ..data.selection import select_targets
+from ..evaluate.sequence import evaluate_sequence
+from ..synth import generate_sequence
+from . import autolabel_worker
+
+#: Root of this checkout (the code measured as ``this``).
+REPO_ROOT = Path(__file__).resolve().parents[2]
+#: The bundled sequence (``--data bundled``).
+BUNDLED_ROOT = REPO_ROOT / "scenes" / "kitti360-synth"
+#: Data of a default run: the bundled scene and a parked-heavy and a moving-heavy sequence.
+DEFAULT_DATA = ("bundled", "synth:6,2,4411", "synth:3,4,4412")
+#: Frames of a ``synth:`` sequence when its spec does not say.
+DEFAULT_SYNTH_FRAMES = 30
+#: Name of the side measuring this checkout.
+THIS = "this"
 
 
 @dataclass(frozen=True)
-class BenchDataset:
-    """A synthetic sequence of the benchmark (see :func:`vsrd_mi.synth.generate_sequence`)."""
+class BenchSequence:
+    """One sequence of the benchmark and the target frames run on it."""
 
     name: str
-    n_static: int
-    n_dynamic: int
-    seed: int
-    frames: int = 30
-    #: Target frames scored per dataset (the middle ones of the selection; 0 = all).
-    max_targets: int = 0
+    root: str
+    sequence: str
+    targets: tuple[int, ...]
 
 
 @dataclass(frozen=True)
-class BenchSetting:
-    """One configuration: overrides of :func:`default_config` (nested dicts merge)."""
+class Side:
+    """Code measured: a name and the source tree put on ``PYTHONPATH``."""
 
     name: str
-    overrides: dict = field(default_factory=dict)
-    #: Start from the ``paper`` preset instead of the default.
-    paper: bool = False
+    tree: Path
+
+    def environment(self, cache_dir: str | None = None) -> dict:
+        """The worker's environment: the tree (and its plugin folder) first on the path."""
+        env = dict(os.environ)
+        paths = [str(self.tree), str(self.tree / "plugins")]
+        env["PYTHONPATH"] = os.pathsep.join(paths + ([env["PYTHONPATH"]] if env.get("PYTHONPATH") else []))
+        if cache_dir is not None:
+            env["DRJIT_CACHE_DIR"] = cache_dir
+        return env
 
 
-DATASETS = (BenchDataset("static-heavy", n_static=5, n_dynamic=1, seed=1101),
-            BenchDataset("dynamic-heavy", n_static=2, n_dynamic=4, seed=2202))
-
-NO_SIL = {"weights": {"silhouette": 0.0}}
-#: The paper's ablation order (Table "multi-view 3D autolabeling"), each row adding one component,
-#: then the default (which leaves the residual field off, see ``AutolabelConfig.residual``).
-ABLATION = (
-    BenchSetting("abl-projection", {**NO_SIL, "residual": False, "velocity": False, "init": False}),
-    BenchSetting("abl-+silhouette", {"residual": False, "velocity": False, "init": False}),
-    BenchSetting("abl-+residual", {"residual": True, "velocity": False, "init": False}),
-    BenchSetting("abl-+velocity", {"residual": True, "init": False}),
-    BenchSetting("abl-+init", {"residual": True}),
-    BenchSetting("default", {}),
-)
-
-GRID = (
-    BenchSetting("dense", {"sampling": "dense"}),
-    BenchSetting("rays-500", {"rays_per_step": 500}),
-    BenchSetting("rays-2000", {"rays_per_step": 2000}),
-    BenchSetting("K-8", {"band_samples": 8}),
-    BenchSetting("K-32", {"band_samples": 32}),
-    BenchSetting("no-isolated", {"isolated_rays": False}),
-    BenchSetting("steps-300", {"steps": 300, "warmup_steps": 100}),
-    BenchSetting("steps-1200", {"steps": 1200, "warmup_steps": 400}),
-    BenchSetting("no-early-stop", {"early_stop": {"enabled": False}}),
-    BenchSetting("residual", {"residual": True}),
-    BenchSetting("no-velocity", {"velocity": False}),
-    BenchSetting("no-init", {"init": False}),
-    BenchSetting("init-weight-1", {"weights": {"init": 1.0}}),
-    BenchSetting("init-dynamic-paper", {"weights": {"init_dynamic": 0.1}}),
-    BenchSetting("init-paper", {"weights": {"init": 0.1, "init_dynamic": 0.1}}),
-    BenchSetting("init-static-20", {"weights": {"init": 20.0}}),
-    #: the size / yaw prior of the ``paper`` preset on the default (off there since it measured worse)
-    BenchSetting("shape-prior", {"weights": {k: LONG_SCHEDULE_SHAPE_PRIOR for k in SHAPE_PRIOR_FIELDS}}),
-    BenchSetting("containment", {"weights": {"projection_mode": "containment"}}),
-    #: the paper's projection of the 8 box corners instead of the car profile (``CarProfile``)
-    BenchSetting("box-corners", {"car_profile": {"clearance": 0.0, "overhang": 0.0, "corner": 0.0}}),
-    #: the car profile without its cut plan corners (``CarProfile.corner``)
-    BenchSetting("square-corners", {"car_profile": {"corner": 0.0}}),
-    #: every target's own boxes in the labels (no sequence-level consensus of parked cars)
-    BenchSetting("no-consensus", {"consensus": {"enabled": False}}),
-    BenchSetting("paper", {}, paper=True),
-    #: the paper's schedule, losses and residual field with the adaptive sampler: separates the
-    #: sampler's share of the paper-vs-default difference from the schedule's
-    BenchSetting("paper-adaptive", {"sampling": "adaptive"}, paper=True),
-    #: ... and without the residual field (3000 box-only steps): separates the field's share
-    BenchSetting("paper-box-only", {"sampling": "adaptive", "residual": False}, paper=True),
-)
-
-#: --quick: the default and the switches the issues ask to be measured (one target per dataset).
-QUICK_SETTINGS = ("default", "residual", "no-velocity", "no-init", "abl-projection")
-#: Step budget of --quick runs (the schedules are compressed accordingly).
-QUICK_STEPS = 150
+def export_revision(rev: str, dest: Path) -> Path:
+    """The tree of git revision ``rev`` of this repository, written to ``dest`` (``git archive``)."""
+    dest.mkdir(parents=True, exist_ok=True)
+    archive = subprocess.run(["git", "-C", str(REPO_ROOT), "archive", "--format=tar", rev],
+                             capture_output=True, check=False)
+    if archive.returncode != 0:
+        raise ValueError(f"git revision {rev!r}: {archive.stderr.decode().strip()}")
+    subprocess.run(["tar", "-x", "-C", str(dest)], input=archive.stdout, check=True)
+    return dest
 
 
-def merge(base: dict, over: dict) -> dict:
-    """``base`` with ``over`` merged in (nested dicts merge key by key)."""
-    out = dict(base)
-    for k, v in over.items():
-        out[k] = merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
-    return out
-
-
-def setting_config(setting: BenchSetting, steps: int | None = None) -> AutolabelConfig:
-    """The full configuration of a setting (``steps`` scales the step budget and warm-up)."""
-    base = (paper_config() if setting.paper else default_config()).to_dict()
-    cfg = AutolabelConfig.from_dict(merge(base, setting.overrides))
-    if steps is not None and steps < cfg.steps:
-        cfg = cfg.replace(warmup_steps=max(1, round(cfg.warmup_steps * steps / cfg.steps)), steps=steps)
-    return cfg
-
-
-def ensure_dataset(data_dir: Path, ds: BenchDataset) -> Path:
-    """Root of the dataset's sequence (generated unless a finished copy is cached)."""
-    from ..synth import generate_sequence
-
-    root = data_dir / f"{ds.name}-s{ds.seed}-f{ds.frames}"
-    done = root / "DONE"
-    if not done.is_file():
+def data_root(spec: str, data_dir: Path) -> Path:
+    """Root of a ``--data`` item (a ``synth:`` sequence is generated unless a finished copy is cached)."""
+    if spec == "bundled":
+        return BUNDLED_ROOT
+    kind, _, args = spec.partition(":")
+    values = args.split(",")
+    if kind != "synth" or len(values) not in (3, 4) or not all(v.strip().isdigit() for v in values):
+        raise ValueError(f"--data {spec!r}: expected 'bundled' or 'synth:STATIC,DYNAMIC,SEED[,FRAMES]'")
+    n_static, n_dynamic, seed, frames = (list(map(int, values)) + [DEFAULT_SYNTH_FRAMES])[:4]
+    root = data_dir / f"synth-s{n_static}-d{n_dynamic}-seed{seed}-f{frames}"
+    if not (root / "DONE").is_file():
         if root.exists():
             shutil.rmtree(root)
-        t = time.perf_counter()
-        generate_sequence(root, seq=0, frames=ds.frames, n_static=ds.n_static, n_dynamic=ds.n_dynamic,
-                          seed=ds.seed)
-        done.write_text(f"{time.perf_counter() - t:.1f} s\n")
+        start = time.perf_counter()
+        generate_sequence(root, seq=0, frames=frames, n_static=n_static, n_dynamic=n_dynamic, seed=seed)
+        (root / "DONE").write_text(f"{time.perf_counter() - start:.1f} s\n")
     return root
 
 
-def bench_targets(root: Path, ds: BenchDataset) -> list[int]:
-    """Target frames scored on a dataset: the selection's, thinned to ``max_targets`` middle ones."""
-    from ..data.kitti360 import Sequence
-    from ..data.selection import select_targets
-
-    targets = [s.target for s in select_targets(Sequence(root, 0))]
-    if ds.max_targets and len(targets) > ds.max_targets:
-        mid = len(targets) // 2
-        lo = max(0, mid - ds.max_targets // 2)
-        targets = targets[lo:lo + ds.max_targets]
-    return targets
+def middle(values: list[int], count: int) -> list[int]:
+    """At most ``count`` of ``values`` around their middle (all of them for ``count <= 0``)."""
+    if count <= 0 or len(values) <= count:
+        return list(values)
+    lo = max(0, len(values) // 2 - count // 2)
+    return values[lo:lo + count]
 
 
-def _worker(root: str, targets: list[int], cfg: dict, out_dir: str, result_path: str) -> None:
-    """Child process: autolabel ``targets`` with ``cfg`` and write timings + peak memory."""
-    import vsrd_mi  # noqa: F401  (variant and plugins)
-    from ..batch.tasks import TargetTask
-    from ..data.kitti360 import Sequence
-    from ..autolabel.job import process_target
-
-    seq = Sequence(root, 0)
-    rows = []
-    for frame in targets:
-        task = TargetTask(root=root, sequence=seq.name, frame=frame, output_dir=out_dir, config=cfg)
-        t = time.perf_counter()
-        try:
-            res = process_target(task)
-            rows.append({"frame": frame, "status": res.status, "seconds": time.perf_counter() - t,
-                         "error": res.error})
-        except Exception as exc:  # recorded, the setting goes on with its other targets
-            rows.append({"frame": frame, "status": "failed", "seconds": time.perf_counter() - t,
-                         "error": f"{type(exc).__name__}: {exc}"})
-    # the sequence-level step `vsrd-mi autolabel` runs after its targets (labels of parked cars)
-    from ..optimise.config import AutolabelConfig
-    from ..autolabel.consensus import apply_consensus
-
-    t = time.perf_counter()
-    try:
-        full = AutolabelConfig.from_dict(cfg)
-        apply_consensus(Path(out_dir) / seq.name, seq, full.consensus, full.heading)
-        consensus_error = None
-    except Exception as exc:  # recorded; the targets' own labels are scored
-        consensus_error = f"{type(exc).__name__}: {exc}"
-    consensus_seconds = time.perf_counter() - t
-    peak_kib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    Path(result_path).write_text(json.dumps({"targets": rows, "peak_rss_mib": peak_kib / 1024.0,
-                                             "consensus_seconds": consensus_seconds,
-                                             "consensus_error": consensus_error}))
+def bench_sequences(data: list[str], data_dir: Path, max_targets: int) -> list[BenchSequence]:
+    """The benchmark's sequences with their target frames (the selection's, thinned to the middle)."""
+    out = []
+    for spec in data:
+        root = data_root(spec, data_dir)
+        seq = Sequence(root, 0)
+        targets = middle([s.target for s in select_targets(seq)], max_targets)
+        out.append(BenchSequence(spec, str(root), seq.name, tuple(targets)))
+    return out
 
 
-def run_setting(root: Path, targets: list[int], cfg: AutolabelConfig, work: Path) -> dict:
-    """Autolabel in a fresh process and evaluate the target frames."""
-    from ..evaluate.sequence import evaluate_sequence
-
-    if work.exists():
-        shutil.rmtree(work)
-    work.mkdir(parents=True)
-    result_path = work / "run.json"
-    job = json.dumps({"root": str(root), "targets": targets, "cfg": cfg.to_dict(),
-                      "out_dir": str(work / "out"), "result_path": str(result_path)})
-    wall = time.perf_counter()
-    proc = subprocess.run([sys.executable, "-c", "import sys, json; from vsrd_mi.bench.autolabel import _worker; "
-                           "_worker(**json.loads(sys.argv[1]))", job])
-    wall = time.perf_counter() - wall
+def run_worker(side: Side, job: dict, work: Path, cache_dir: str | None = None) -> dict:
+    """Run :mod:`.autolabel_worker` on ``job`` for ``side`` in a fresh process; its result."""
+    work.mkdir(parents=True, exist_ok=True)
+    job_path, result_path = work / "job.json", work / "result.json"
+    job_path.write_text(json.dumps(job, indent=1))
+    result_path.unlink(missing_ok=True)
+    proc = subprocess.run([sys.executable, "-P", autolabel_worker.__file__, str(job_path), str(result_path)],
+                          env=side.environment(cache_dir), cwd=str(work))
     if proc.returncode != 0 or not result_path.is_file():
-        return {"error": f"worker exited with {proc.returncode}", "wall_seconds": wall}
-    run = json.loads(result_path.read_text())
-    ok = [r for r in run["targets"] if r["status"] == "done"]
-    ev = evaluate_sequence(work / "out", root, 0, frames=targets)
-    pairs = ev["pairs"]
-    ap3d = ev["ap"]["3d"]
-    apbev = ev["ap"]["bev"]
+        raise RuntimeError(f"{side.name}: worker exited with {proc.returncode} (job {job_path})")
+    return json.loads(result_path.read_text())
+
+
+def target_job(sequences: list[BenchSequence], out: Path, args: argparse.Namespace, kernel_history: bool,
+               first_only: bool = False) -> dict:
+    """The worker job of one run over the benchmark's targets (outputs under ``out``)."""
+    items = []
+    for k, s in enumerate(sequences):
+        targets = list(s.targets[:1]) if first_only else list(s.targets)
+        items.append({"root": s.root, "sequence": s.sequence, "targets": targets, "out_dir": str(out / f"data{k}")})
+        if first_only:
+            break
+    return {"preset": args.config, "overrides": list(args.set or []), "seed": args.seed,
+            "kernel_history": kernel_history, "sequences": items}
+
+
+def labels_identical(a: Path, b: Path) -> list[str]:
+    """Label files (relative paths) that differ between two output trees or exist in one only."""
+    files_a = {p.relative_to(a) for p in a.rglob("labels/*.txt")}
+    files_b = {p.relative_to(b) for p in b.rglob("labels/*.txt")}
+    differ = sorted(str(p) for p in files_a ^ files_b)
+    differ += sorted(str(p) for p in files_a & files_b if not filecmp.cmp(a / p, b / p, shallow=False))
+    return differ
+
+
+def evaluation(sequences: list[BenchSequence], out: Path) -> dict:
+    """This checkout's evaluation of one run's labels: per sequence and pooled over sequences."""
+    per, pooled = {}, {}
+    for k, s in enumerate(sequences):
+        ev = evaluate_sequence(out / f"data{k}", s.root, s.sequence, frames=s.targets)
+        per[s.name] = {key: value for key, value in ev.items() if key not in ("frames", "prediction_dir")}
+        for group, stats in ev["pairs"].items():
+            acc = pooled.setdefault(group, {"n_gt": 0, "n_matched": 0, "iou_3d_sum": 0.0, "iou_bev_sum": 0.0})
+            acc["n_gt"] += stats["n_gt"]
+            acc["n_matched"] += stats["n_matched"]
+            acc["iou_3d_sum"] += (stats["mean_iou_3d"] or 0.0) * stats["n_matched"]
+            acc["iou_bev_sum"] += (stats["mean_iou_bev"] or 0.0) * stats["n_matched"]
+    for acc in pooled.values():
+        n = acc["n_matched"]
+        acc["mean_iou_3d"] = acc.pop("iou_3d_sum") / n if n else None
+        acc["mean_iou_bev"] = acc.pop("iou_bev_sum") / n if n else None
+    return {"pooled": pooled, "sequences": per}
+
+
+def per_target_rows(runs: list[dict]) -> list[dict]:
+    """One row per (sequence, target): times of every timed round, mean phases, steps, kernels."""
+    rows = {}
+    for run in runs:
+        for s in run["sequences"]:
+            for t in s["targets"]:
+                row = rows.setdefault((s["sequence"], t["frame"]), {
+                    "sequence": s["sequence"], "frame": t["frame"], "seconds": [], "phases": {}, "status": []})
+                row["seconds"].append(t["seconds"])
+                row["status"].append(t["status"])
+                for k, v in t["phases"].items():
+                    row["phases"].setdefault(k, []).append(v)
+                row["steps"] = t.get("steps")
+    out = []
+    for row in rows.values():
+        row["mean_seconds"] = float(np.mean(row["seconds"]))
+        row["phases"] = {k: float(np.mean(v)) for k, v in row["phases"].items()}
+        row["steps_per_second"] = (row["steps"] / row["phases"]["optimisation"]
+                                   if row.get("steps") and row["phases"].get("optimisation") else None)
+        out.append(row)
+    return out
+
+
+def kernel_summary(run: dict) -> dict:
+    """Kernel figures of the warm-up (kernel history) run, over all its targets."""
+    ks = [t["kernels"] for s in run["sequences"] for t in s["targets"] if t.get("kernels")]
+    launched = [k["launched_per_step"] for k in ks if k["launched_per_step"] is not None]
     return {
-        "wall_seconds": wall,
-        "seconds_per_target": (sum(r["seconds"] for r in ok) / len(ok)) if ok else None,
-        "peak_rss_mib": run["peak_rss_mib"],
-        "consensus_seconds": run.get("consensus_seconds"),
-        "consensus_error": run.get("consensus_error"),
-        "failed": [r for r in run["targets"] if r["status"] != "done"],
-        "mean_iou_3d": pairs["all"]["mean_iou_3d"],
-        "mean_iou_3d_static": pairs["static"]["mean_iou_3d"],
-        "mean_iou_3d_dynamic": pairs["dynamic"]["mean_iou_3d"],
-        "mean_iou_bev": pairs["all"]["mean_iou_bev"],
-        "recall_weighted_iou_3d": pairs["all"]["recall_weighted_iou_3d"],
-        "centre_error_m": pairs["all"]["centre_error_m"],
-        "ap3d_0.5_r40": ap3d[_key(ap3d, 0.5)]["easy"]["R40"] if "easy" in ap3d[_key(ap3d, 0.5)] else None,
-        "apbev_0.5_r40": apbev[_key(apbev, 0.5)]["easy"]["R40"] if "easy" in apbev[_key(apbev, 0.5)] else None,
-        "apbev_0.3_r40": apbev[_key(apbev, 0.3)]["easy"]["R40"] if "easy" in apbev[_key(apbev, 0.3)] else None,
+        "launched_per_step": float(np.mean(launched)) if launched else None,
+        "new_after_warmup": sum(k["new_after_warmup"] for k in ks),
+        "compiled_after_warmup": sum(k["compiled_after_warmup"] for k in ks),
+        "new_in_warmup_per_target": float(np.mean([k["new_in_warmup"] for k in ks])) if ks else None,
+        "warmup_steps": autolabel_worker.WARMUP_STEPS,
+        "per_target": ks,
     }
 
 
-def _key(table: dict, threshold: float) -> str:
-    """The threshold key of an AP table (``"0.5"``-like formatting of the evaluator)."""
-    for k in table:
-        if abs(float(k) - threshold) < 1e-9:
-            return k
-    raise KeyError(threshold)
+def side_summary(rows: list[dict], runs: list[dict], warm: dict, ev: dict) -> dict:
+    """Headline figures of one side."""
+    done = [r for r in rows if all(s == "done" for s in r["status"])]
+    steps = [r["steps"] for r in done if r.get("steps")]
+    optimise = [r["phases"].get("optimisation", 0.0) for r in done if r.get("steps")]
+    phases = {k: float(np.mean([r["phases"].get(k, 0.0) for r in done])) for k in (done[0]["phases"] if done else {})}
+    return {
+        "targets": len(rows), "failed": [r for r in rows if r not in done],
+        "seconds_per_target": float(np.mean([r["mean_seconds"] for r in done])) if done else None,
+        "phases_per_target": phases,
+        "steps_per_target": float(np.mean(steps)) if steps else None,
+        "steps_per_second": float(sum(steps) / sum(optimise)) if steps and sum(optimise) > 0 else None,
+        "peak_rss_mib": max(run["peak_rss_mib"] for run in runs),
+        "kernels": kernel_summary(warm),
+        "mean_iou_3d_parked": ev["pooled"].get("static", {}).get("mean_iou_3d"),
+        "mean_iou_3d_moving": ev["pooled"].get("dynamic", {}).get("mean_iou_3d"),
+        "mean_iou_3d_all": ev["pooled"].get("all", {}).get("mean_iou_3d"),
+    }
 
 
-def write_outputs(results: list[dict], out_dir: Path, meta: dict) -> None:
-    """JSON, CSV, Pareto plot and the ablation table."""
-    out_dir.mkdir(parents=True, exist_ok=True)
-    (out_dir / "autolabel.json").write_text(json.dumps({"meta": meta, "results": results}, indent=1))
-    cols = ["dataset", "setting", "seconds_per_target", "peak_rss_mib", "mean_iou_3d", "mean_iou_3d_static",
-            "mean_iou_3d_dynamic", "mean_iou_bev", "recall_weighted_iou_3d", "centre_error_m", "ap3d_0.5_r40", "apbev_0.5_r40",
-            "apbev_0.3_r40"]
-    with open(out_dir / "autolabel.csv", "w", newline="") as fh:
-        w = csv.DictWriter(fh, fieldnames=cols, extrasaction="ignore")
-        w.writeheader()
-        for r in results:
-            w.writerow(r)
-    _plot(results, out_dir / "autolabel_pareto.png")
-    _ablation_table(results, out_dir / "autolabel_ablation.md")
+def comparison(rows: dict[str, list[dict]], summaries: dict[str, dict], base: str) -> dict:
+    """``base`` against this checkout: time ratios per target and over all, IoU differences."""
+    mine = {(r["sequence"], r["frame"]): r["mean_seconds"] for r in rows[THIS]}
+    theirs = {(r["sequence"], r["frame"]): r["mean_seconds"] for r in rows[base]}
+    common = sorted(set(mine) & set(theirs))
+    ratios = [theirs[k] / mine[k] for k in common]
+    a, b = summaries[THIS], summaries[base]
+
+    def diff(key: str) -> float | None:
+        return None if a.get(key) is None or b.get(key) is None else a[key] - b[key]
+    return {
+        "speedup_total": sum(theirs[k] for k in common) / sum(mine[k] for k in common) if common else None,
+        "speedup_per_target": {f"{s} {f}": r for (s, f), r in zip(common, ratios)},
+        "speedup_geometric_mean": float(np.exp(np.mean(np.log(ratios)))) if ratios else None,
+        "iou_3d_parked_difference": diff("mean_iou_3d_parked"),
+        "iou_3d_moving_difference": diff("mean_iou_3d_moving"),
+        "peak_rss_ratio": a["peak_rss_mib"] / b["peak_rss_mib"],
+    }
 
 
-def _plot(results: list[dict], path: Path) -> None:
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(7, 4.5))
-    for ds, marker in zip(sorted({r["dataset"] for r in results}), "os^"):
-        pts = [r for r in results if r["dataset"] == ds and r.get("recall_weighted_iou_3d") is not None
-               and r.get("seconds_per_target")]
-        ax.scatter([r["seconds_per_target"] for r in pts], [1.0 - r["recall_weighted_iou_3d"] for r in pts],
-                   marker=marker, label=ds)
-        for r in pts:
-            ax.annotate(r["setting"], (r["seconds_per_target"], 1.0 - r["recall_weighted_iou_3d"]), fontsize=7,
-                        rotation=20)
-    ax.set_xscale("log")
-    ax.set_xlabel("seconds per target frame (CPU, llvm_ad_rgb)")
-    ax.set_ylabel("1 - mean 3D IoU (unmatched ground truth counts as 0)")
-    ax.set_title("vsrd-mi autolabel: run time vs error")
-    ax.legend()
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-
-
-def _fmt(v) -> str:
-    return "-" if v is None else f"{v:.3f}"
-
-
-def _ablation_table(results: list[dict], path: Path) -> None:
-    rows = ["| setting | mean 3D IoU | static | dynamic | AP3D@0.5 R40 (easy) | APBEV@0.5 R40 (easy) | s/target |",
-            "|---|---|---|---|---|---|---|"]
-    names = [s.name for s in ABLATION]
-    for name in names:
-        for r in results:
-            if r["dataset"] == "dynamic-heavy" and r["setting"] == name:
-                rows.append(f"| {name} | {_fmt(r.get('mean_iou_3d'))} | {_fmt(r.get('mean_iou_3d_static'))} | "
-                            f"{_fmt(r.get('mean_iou_3d_dynamic'))} | {_fmt(r.get('ap3d_0.5_r40'))} | "
-                            f"{_fmt(r.get('apbev_0.5_r40'))} | {_fmt(r.get('seconds_per_target'))} |")
-    path.write_text("Ablation on the dynamic-heavy synthetic sequence (paper order; each row adds one "
-                    "component; `abl-+init` = every component of the paper; `default` = the fast default, "
-                    "residual field off).\n\n" + "\n".join(rows) + "\n")
+def sequence_figure(sides: list[Side], frames: int, args: argparse.Namespace, work: Path) -> dict:
+    """Label a ``frames``-frame synthetic sequence end to end with ``vsrd-mi autolabel`` per side."""
+    root = data_root(f"synth:{args.sequence_static},{args.sequence_dynamic},{args.sequence_seed},{frames}",
+                     Path(args.data_dir))
+    seq = Sequence(root, 0)
+    out = {"root": str(root), "frames": frames, "targets": len(select_targets(seq)), "sides": {}}
+    for side in sides:
+        dest = work / "sequence" / side.name
+        if dest.exists():
+            shutil.rmtree(dest)
+        cli = ["autolabel", str(root), "--sequence", seq.name, "--out", str(dest), "--config", args.config]
+        cli += [a for kv in (args.set or []) for a in ("--set", kv)]
+        print(f"[sequence] {side.name}: vsrd-mi {' '.join(cli)}", flush=True)
+        result = run_worker(side, {"cli": cli}, dest.parent / f"{side.name}-job")
+        labelled = len(list((dest / seq.name / "labels").glob("*.txt")))
+        ev = evaluate_sequence(dest, root, seq.name)
+        out["sides"][side.name] = {**result, "labelled_frames": labelled,
+                                   "labelled_frames_per_hour": 3600.0 * labelled / result["seconds"],
+                                   "pairs": ev["pairs"]}
+    return out
 
 
 def run(args: argparse.Namespace) -> int:
-    data_dir = Path(args.data_dir)
-    work_dir = Path(args.work_dir)
-    settings = {s.name: s for s in ABLATION + GRID}
-    names = list(QUICK_SETTINGS) if args.quick else list(settings)
-    if args.settings:
-        names = args.settings
-    steps = args.steps or (QUICK_STEPS if args.quick else None)
-    datasets = [BenchDataset(d.name, d.n_static, d.n_dynamic, d.seed, d.frames,
-                             max_targets=args.max_targets or (1 if args.quick else 0)) for d in DATASETS]
-    results = []
-    start = time.perf_counter()
-    for ds in datasets:
-        root = ensure_dataset(data_dir, ds)
-        targets = bench_targets(root, ds)
-        for name in names:
-            cfg = setting_config(settings[name], steps)
-            print(f"[{ds.name}] {name}: targets {targets} ...", flush=True)
-            r = run_setting(root, targets, cfg, work_dir / ds.name / name)
-            r.update(dataset=ds.name, setting=name, targets=targets, config=cfg.to_dict())
-            results.append(r)
-            print(f"    {_fmt(r.get('seconds_per_target'))} s/target, mean 3D IoU {_fmt(r.get('mean_iou_3d'))} "
-                  f"(static {_fmt(r.get('mean_iou_3d_static'))}, dynamic {_fmt(r.get('mean_iou_3d_dynamic'))}), "
-                  f"peak {_fmt(r.get('peak_rss_mib'))} MiB", flush=True)
-            write_outputs(results, Path(args.out), _meta(args, datasets, steps, start))
-    if args.json:
-        Path(args.json).write_text(json.dumps({"meta": _meta(args, datasets, steps, start), "results": results},
-                                              indent=1))
+    work = Path(args.work_dir).resolve()
+    data_dir = Path(args.data_dir).resolve()
+    sequences = bench_sequences(args.data, data_dir, args.max_targets)
+    for s in sequences:
+        print(f"{s.name}: {s.root} targets {list(s.targets)}", flush=True)
+    with tempfile.TemporaryDirectory(prefix="vsrd-bench-") as tmp:
+        sides = [Side(THIS, REPO_ROOT)]
+        if args.rev:
+            sides.append(Side(args.rev, export_revision(args.rev, Path(tmp) / "rev")))
+        start = time.perf_counter()
+        warm = {}
+        for side in sides:
+            print(f"[warm-up, kernel history] {side.name}", flush=True)
+            warm[side.name] = run_worker(side, target_job(sequences, work / side.name / "warmup", args, True),
+                                         work / side.name / "warmup")
+        cold = {}
+        if args.cold:
+            for side in sides:
+                print(f"[cold kernel cache] {side.name}", flush=True)
+                cache = tempfile.mkdtemp(prefix="drjit-cold-", dir=tmp)
+                res = run_worker(side, target_job(sequences, work / side.name / "cold", args, True, first_only=True),
+                                 work / side.name / "cold", cache_dir=cache)
+                first = res["sequences"][0]["targets"][0]
+                cold[side.name] = {"frame": first["frame"], "sequence": res["sequences"][0]["sequence"],
+                                   "seconds": first["seconds"], "phases": first["phases"],
+                                   "kernels": first.get("kernels")}
+        runs: dict[str, list[dict]] = {side.name: [] for side in sides}
+        for r in range(args.rounds):
+            for side in (sides if r % 2 == 0 else sides[::-1]):
+                print(f"[round {r + 1}/{args.rounds}] {side.name}", flush=True)
+                out = work / side.name / f"round{r}"
+                if out.exists():
+                    shutil.rmtree(out)
+                runs[side.name].append(run_worker(side, target_job(sequences, out, args, False), out))
+        rows, summaries, deterministic, evals = {}, {}, {}, {}
+        for side in sides:
+            rounds = [work / side.name / f"round{r}" for r in range(args.rounds)]
+            evals[side.name] = evaluation(sequences, rounds[-1])
+            rows[side.name] = per_target_rows(runs[side.name])
+            summaries[side.name] = side_summary(rows[side.name], runs[side.name], warm[side.name], evals[side.name])
+            summaries[side.name]["cold_first_target"] = cold.get(side.name)
+            deterministic[side.name] = {"differing_label_files": sorted(
+                {f for r in rounds[1:] for f in labels_identical(rounds[0], r)})}
+        result = {
+            "meta": _meta(args, sequences, time.perf_counter() - start),
+            "summary": summaries,
+            "comparison": comparison(rows, summaries, args.rev) if args.rev else None,
+            "deterministic": deterministic, "targets": rows, "evaluation": evals,
+        }
+        out_dir = Path(args.out)
+        out_dir.mkdir(parents=True, exist_ok=True)
+        (out_dir / "autolabel.json").write_text(json.dumps(result, indent=1))
+        print(report(result), flush=True)
+        if args.sequence_frames:
+            seq_result = {"meta": _meta(args, sequences, 0.0), **sequence_figure(sides, args.sequence_frames, args, work)}
+            (out_dir / "autolabel_sequence.json").write_text(json.dumps(seq_result, indent=1))
+            for name, s in seq_result["sides"].items():
+                print(f"[sequence] {name}: {s['seconds']:.0f} s, {s['labelled_frames']} labelled frames, "
+                      f"{s['labelled_frames_per_hour']:.0f} per hour, peak {s['peak_rss_mib']:.0f} MiB")
     return 0
 
 
-def _meta(args, datasets, steps, start) -> dict:
-    import platform
-    return {"quick": bool(args.quick), "steps_override": steps, "datasets": [asdict(d) for d in datasets],
-            "elapsed_seconds": time.perf_counter() - start, "python": sys.version.split()[0],
-            "machine": platform.machine(), "cpus": os.cpu_count(),
-            "command": "vsrd-mi bench autolabel" + (" --quick" if args.quick else "")}
+def _fmt(value, spec: str = ".3f") -> str:
+    return "-" if value is None else format(value, spec)
+
+
+def report(result: dict) -> str:
+    """A short text table of the headline figures."""
+    lines = ["side | s/target | steps/s | steps | launched/step | new kernels after warm-up | peak MiB | "
+             "3D IoU parked | moving"]
+    for name, s in result["summary"].items():
+        k = s["kernels"]
+        lines.append(f"{name} | {_fmt(s['seconds_per_target'], '.2f')} | {_fmt(s['steps_per_second'], '.1f')} | "
+                     f"{_fmt(s['steps_per_target'], '.0f')} | {_fmt(k['launched_per_step'], '.0f')} | "
+                     f"{k['new_after_warmup']} | {_fmt(s['peak_rss_mib'], '.0f')} | "
+                     f"{_fmt(s['mean_iou_3d_parked'])} | {_fmt(s['mean_iou_3d_moving'])}")
+    c = result.get("comparison")
+    if c:
+        lines.append(f"speed-up {_fmt(c['speedup_total'], '.2f')}x over all targets (geometric mean "
+                     f"{_fmt(c['speedup_geometric_mean'], '.2f')}x); 3D IoU difference parked "
+                     f"{_fmt(c['iou_3d_parked_difference'], '+.4f')}, moving {_fmt(c['iou_3d_moving_difference'], '+.4f')}")
+    for name, d in result["deterministic"].items():
+        lines.append(f"{name}: label files differing between rounds: {len(d['differing_label_files'])}")
+    return "\n".join(lines)
+
+
+def _meta(args: argparse.Namespace, sequences: list[BenchSequence], elapsed: float) -> dict:
+    commit = subprocess.run(["git", "-C", str(REPO_ROOT), "rev-parse", "HEAD"], capture_output=True, text=True)
+    dirty = subprocess.run(["git", "-C", str(REPO_ROOT), "status", "--porcelain", "--untracked-files=no"],
+                           capture_output=True, text=True)
+    return {"command": "vsrd-mi " + " ".join(sys.argv[1:]), "commit": commit.stdout.strip(),
+            "uncommitted_changes": bool(dirty.stdout.strip()), "rev": args.rev, "rounds": args.rounds,
+            "config": args.config, "overrides": list(args.set or []), "sequences": [asdict(s) for s in sequences],
+            "elapsed_seconds": elapsed, "python": sys.version.split()[0], "machine": platform.machine(),
+            "cpus": os.cpu_count(), "load_average": os.getloadavg()}
 
 
 def register(bench_subparsers) -> None:
     """Add ``autolabel`` to the ``vsrd-mi bench`` sub-commands."""
-    p = bench_subparsers.add_parser("autolabel", help="run time vs error of the autolabeling on synthetic sequences")
-    p.add_argument("--quick", action="store_true",
-                   help=f"one target per dataset, {len(QUICK_SETTINGS)} settings, {QUICK_STEPS} steps")
-    p.add_argument("--json", help="also write the results to this path")
-    p.add_argument("--out", default="benchmarks", help="directory of autolabel.{json,csv}, plot and ablation table")
-    p.add_argument("--data-dir", default="runs/bench-data", help="cache of the generated sequences")
-    p.add_argument("--work-dir", default="runs/bench-autolabel", help="per-setting outputs")
-    p.add_argument("--settings", nargs="+", help="run only these settings")
-    p.add_argument("--steps", type=int, help="cap the step budget of every setting")
-    p.add_argument("--max-targets", type=int, default=0, help="target frames per dataset (0 = all)")
+    p = bench_subparsers.add_parser(
+        "autolabel", help="per-target speed and accuracy of the autolabeling, optionally against a git revision",
+        description=__doc__.split("\n\n")[0])
+    p.add_argument("--rev", help="git revision run side by side (e.g. ed219dd)")
+    p.add_argument("--data", nargs="+", default=list(DEFAULT_DATA),
+                   help="sequences: 'bundled' and/or 'synth:STATIC,DYNAMIC,SEED[,FRAMES]'")
+    p.add_argument("--max-targets", type=int, default=3, help="target frames per sequence, the middle ones (0 = all)")
+    p.add_argument("--rounds", type=int, default=2, help="timed rounds per side (alternating)")
+    p.add_argument("--cold", action="store_true", help="also time the first target with an empty kernel cache")
+    p.add_argument("--sequence-frames", type=int, default=0,
+                   help="also label a synthetic sequence of this many frames end to end (e.g. 200)")
+    p.add_argument("--sequence-static", type=int, default=8, help="parked cars of that sequence")
+    p.add_argument("--sequence-dynamic", type=int, default=3, help="moving cars of that sequence")
+    p.add_argument("--sequence-seed", type=int, default=4420, help="seed of that sequence")
+    p.add_argument("--config", default="default", help="preset of each side's own configuration")
+    p.add_argument("--set", action="append", metavar="KEY=VALUE", help="override of both sides' configuration")
+    p.add_argument("--seed", type=int, default=0, help="seed of every target")
+    p.add_argument("--out", default="benchmarks", help="directory of autolabel.json (and autolabel_sequence.json)")
+    p.add_argument("--data-dir", default="runs/bench-data", help="cache of generated sequences")
+    p.add_argument("--work-dir", default="runs/bench-autolabel", help="outputs of every run")
     p.set_defaults(func=run)
