@@ -13,11 +13,13 @@ frame and fused:
 * inliers: contributors whose centre lies within ``gate`` metres of the contributors' median
   centre (a car that was parked in two places, or one target's wrong box, is not averaged in);
 * the fused box: component-wise median of the inliers' centres and sizes, and their mean axis
-  ``yaw = arg(sum_k exp(2 i yaw_k)) / 2`` (period pi: a box turned end for end is the same box),
-  with the sign of the first inlier's heading.
+  ``yaw = arg(sum_k exp(2 i yaw_k)) / 2`` (period pi: a box turned end for end is the same box);
+  its front is where the inliers' heading evidence (:mod:`vsrd_mi.optimise.heading`: silhouettes
+  front against back, summed over the targets) points when that sum exceeds the evidence
+  threshold, else where most inliers face (a tie: the first inlier).
 
 The fused box replaces every inlier's box in the labels of that inlier's group; its score is the
-confidence of REFERENCE §7 for the instance, recomputed over all those groups' frames (mean 2D
+confidence of docs/method.md §7 for the instance, recomputed over all those groups' frames (mean 2D
 IoU of the projected box and the instance's mask box, 0 where the instance has no mask). Moving
 cars, and parked cars seen by fewer than ``min_targets`` targets, keep their target's box. The
 per-target results (``boxes/%010d.json``) are never changed, so the step can be rerun at any
@@ -43,7 +45,7 @@ from ..export.kitti_labels import KittiLabel, label_from_box, write_labels
 from ..geometry.boxes import Box3D
 from ..geometry.boxes2d import iou_matrix
 from ..geometry.camera import box_to_2d
-from ..optimise.config import ConsensusConfig
+from ..optimise.config import ConsensusConfig, HeadingConfig
 
 
 @dataclass(frozen=True)
@@ -56,6 +58,8 @@ class TargetBoxes:
     #: Boxes in the target's optimisation frame (:func:`vsrd_mi.data.observations.opt_from_world`).
     boxes: tuple[Box3D, ...]
     confidences: tuple[float, ...]
+    #: Per box, the silhouettes' evidence for the box's own front over its back (0 when none).
+    heading_evidence: tuple[float, ...] = ()
 
     @staticmethod
     def read(path: Path) -> "TargetBoxes":
@@ -64,7 +68,8 @@ class TargetBoxes:
             d = json.loads(Path(path).read_text())
             boxes = tuple(Box3D.from_dict(b) for b in d["boxes"])
             return TargetBoxes(int(d["target"]), tuple(int(f) for f in d["group"]), boxes,
-                               tuple(float(b["confidence"]) for b in d["boxes"]))
+                               tuple(float(b["confidence"]) for b in d["boxes"]),
+                               tuple(float(b.get("heading", {}).get("evidence", 0.0)) for b in d["boxes"]))
         except (OSError, ValueError, KeyError, TypeError) as exc:
             raise DataError(path, f"unreadable target result: {exc}") from exc
 
@@ -97,8 +102,20 @@ def axis_mean(yaws: np.ndarray) -> float:
     return math.atan2(math.sin(mean), math.cos(mean))
 
 
-def fuse_boxes(boxes: list[Box3D], gate: float) -> tuple[Box3D, np.ndarray] | None:
-    """Consensus of one parked car's boxes (one frame): see the module docstring.
+def fused_front(axis: float, yaws: np.ndarray, evidence: np.ndarray, min_evidence: float) -> float:
+    """``axis`` or ``axis + pi``: where the boxes' summed heading evidence points (each box's
+    evidence is for its own yaw) when its magnitude exceeds ``min_evidence``, else where most
+    boxes face (``axis`` on a tie)."""
+    along = np.where(np.cos(np.asarray(yaws) - axis) >= 0, 1.0, -1.0)
+    total = float(np.sum(along * np.asarray(evidence, dtype=np.float64)))
+    votes = total if abs(total) > min_evidence else float(np.sum(along))
+    return axis if votes >= 0 else math.atan2(math.sin(axis + math.pi), math.cos(axis + math.pi))
+
+
+def fuse_boxes(boxes: list[Box3D], gate: float, evidence: np.ndarray | None = None,
+               min_evidence: float = 0.0) -> tuple[Box3D, np.ndarray] | None:
+    """Consensus of one parked car's boxes (one frame): see the module docstring. ``evidence``:
+    each box's heading evidence for its own yaw (None: none).
 
     Returns the fused box and the inlier mask, or None when fewer than two boxes are inliers.
     """
@@ -107,33 +124,39 @@ def fuse_boxes(boxes: list[Box3D], gate: float) -> tuple[Box3D, np.ndarray] | No
     if inliers.sum() < 2:
         return None
     kept = [b for b, k in zip(boxes, inliers) if k]
+    yaws = np.array([b.yaw for b in kept])
+    kept_evidence = np.zeros(len(kept)) if evidence is None else np.asarray(evidence, dtype=np.float64)[inliers]
+    yaw = fused_front(axis_mean(yaws), yaws, kept_evidence, min_evidence)
     fused = Box3D(centre=np.median([b.centre for b in kept], axis=0), size=np.median([b.size for b in kept], axis=0),
-                  yaw=axis_mean(np.array([b.yaw for b in kept])), instance_id=kept[0].instance_id)
+                  yaw=yaw, instance_id=kept[0].instance_id)
     return fused, inliers
 
 
 def fuse_parked_cars(results: list[TargetBoxes], to_reference: dict[int, np.ndarray],
-                     cfg: ConsensusConfig) -> list[FusedCar]:
+                     cfg: ConsensusConfig, min_evidence: float = HeadingConfig.min_evidence) -> list[FusedCar]:
     """Fuse every parked instance seen by at least ``cfg.min_targets`` targets.
 
-    ``to_reference[t]`` maps target ``t``'s optimisation frame to the reference frame (4x4).
+    ``to_reference[t]`` maps target ``t``'s optimisation frame to the reference frame (4x4);
+    ``min_evidence`` is the heading evidence that decides a fused car's front
+    (:class:`~vsrd_mi.optimise.config.HeadingConfig`).
     """
-    seen: dict[int, list[tuple[int, Box3D]]] = {}
+    seen: dict[int, list[tuple[int, Box3D, float]]] = {}
     for r in results:
-        for b in r.boxes:
+        evidence = r.heading_evidence or (0.0,) * len(r.boxes)
+        for b, e in zip(r.boxes, evidence):
             if not b.dynamic:
-                seen.setdefault(b.instance_id, []).append((r.target, b.transformed(to_reference[r.target])))
+                seen.setdefault(b.instance_id, []).append((r.target, b.transformed(to_reference[r.target]), e))
     fused = []
     for iid, items in sorted(seen.items()):
         if len(items) < max(cfg.min_targets, 2):
             continue
-        out = fuse_boxes([b for _, b in items], cfg.gate)
+        out = fuse_boxes([b for _, b, _ in items], cfg.gate, np.array([e for _, _, e in items]), min_evidence)
         if out is None or out[1].sum() < cfg.min_targets:
             continue
         box, inliers = out
-        targets = tuple(t for (t, _), k in zip(items, inliers) if k)
-        spread = float(max(np.linalg.norm(b.centre - box.centre) for (_, b), k in zip(items, inliers) if k))
-        fused.append(FusedCar(iid, box, targets, tuple(t for (t, _), k in zip(items, inliers) if not k), spread))
+        targets = tuple(t for (t, _, _), k in zip(items, inliers) if k)
+        spread = float(max(np.linalg.norm(b.centre - box.centre) for (_, b, _), k in zip(items, inliers) if k))
+        fused.append(FusedCar(iid, box, targets, tuple(t for (t, _, _), k in zip(items, inliers) if not k), spread))
     return fused
 
 
@@ -153,7 +176,7 @@ def labels_in_frame(boxes: list[Box3D], scores: list[float], cam_to_opt: np.ndar
 
 
 def mask_confidence(box: Box3D, seq: Sequence, frames: list[int], reference: np.ndarray) -> float:
-    """REFERENCE §7's confidence of one parked box with a known instance id: mean over ``frames``
+    """docs/method.md §7's confidence of one parked box with a known instance id: mean over ``frames``
     of the 2D IoU of its projection and the instance's mask box (0 without either).
     ``reference`` maps the world to the box's frame."""
     ious = []
@@ -166,7 +189,8 @@ def mask_confidence(box: Box3D, seq: Sequence, frames: list[int], reference: np.
     return float(np.mean(ious)) if ious else 0.0
 
 
-def apply_consensus(seq_dir: str | Path, seq: Sequence, cfg: ConsensusConfig) -> dict:
+def apply_consensus(seq_dir: str | Path, seq: Sequence, cfg: ConsensusConfig,
+                    heading: HeadingConfig = HeadingConfig()) -> dict:
     """Fuse the parked cars of every finished target under ``seq_dir`` and rewrite the labels of
     the groups they appear in (atomically); write ``seq_dir/consensus.json``. Returns its content.
 
@@ -188,7 +212,7 @@ def apply_consensus(seq_dir: str | Path, seq: Sequence, cfg: ConsensusConfig) ->
         return report
     opt = {r.target: opt_from_world(seq.cam0_to_world(r.target)) for r in results}
     to_ref = {t: opt[results[0].target] @ np.linalg.inv(T) for t, T in opt.items()}
-    fused = fuse_parked_cars(results, to_ref, cfg) if cfg.enabled else []
+    fused = fuse_parked_cars(results, to_ref, cfg, heading.min_evidence) if cfg.enabled else []
     group_of = {r.target: r.group for r in results}
     fused = [FusedCar(c.instance_id, c.box, c.targets, c.outliers, c.spread,
                       mask_confidence(c.box, seq, sorted({f for t in c.targets for f in group_of[t]}),

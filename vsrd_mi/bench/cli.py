@@ -14,6 +14,8 @@ import importlib
 BENCH_MODULES: tuple[str, ...] = (
     "vsrd_mi.bench.integrator",
     "vsrd_mi.bench.autolabel",
+    "vsrd_mi.bench.init_accuracy",
+    "vsrd_mi.bench.memory",
 )
 
 

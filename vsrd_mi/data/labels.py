@@ -1,5 +1,4 @@
-"""KITTI-360 label ids of cars and how instance-map values encode them (REFERENCE section 8 in
-``docs/kitti360.md``)."""
+"""KITTI-360 label ids of cars and how instance-map values encode them (docs/method.md §8)."""
 
 from __future__ import annotations
 

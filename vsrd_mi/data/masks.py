@@ -119,7 +119,7 @@ def signed_distance(mask: np.ndarray) -> np.ndarray:
 
 
 def soft_weight(masks: np.ndarray, scale: float = SOFT_WEIGHT_SCALE_PX) -> np.ndarray:
-    """Ray-sampling weight of one frame: ``sigmoid(signed distance / scale)`` (REFERENCE §3).
+    """Ray-sampling weight of one frame: ``sigmoid(signed distance / scale)`` (docs/method.md §3).
 
     ``masks`` is (N, H, W) bool for the N target instances. Instances are combined by the maximum
     of their per-instance weights, which (sigmoid being monotone) is the sigmoid of the largest

@@ -1,6 +1,6 @@
 """Everything the optimiser needs about one target frame, in the optimisation frame.
 
-Optimisation frame (REFERENCE §1): the target camera rotated about its x axis so that its y axis is
+Optimisation frame (docs/method.md §1): the target camera rotated about its x axis so that its y axis is
 gravity-aligned (pitch removed, roll kept); x right, y down, z forward, origin at the target camera
 centre. KITTI-360's world is z-up, so "down" is world ``-z``.
 
@@ -53,7 +53,7 @@ def opt_from_world(cam_to_world_target: np.ndarray, world_up: np.ndarray = WORLD
 class ObservationConfig:
     """How masks become supervision."""
 
-    #: Length scale (px) of the soft sampling weight ``sigmoid(signed distance / scale)`` (REFERENCE §3).
+    #: Length scale (px) of the soft sampling weight ``sigmoid(signed distance / scale)`` (docs/method.md §3).
     soft_weight_scale_px: float = SOFT_WEIGHT_SCALE_PX
     #: Size filter deciding whether an instance counts as *visible* in a frame (its 2D box then
     #: supervises the projection loss); the same thresholds as target selection.

@@ -1,4 +1,4 @@
-"""Loss terms of the box optimisation (paper eq. 13-16, REFERENCE §3-4), in Dr.Jit.
+"""Loss terms of the box optimisation (paper eq. 13-16, docs/method.md §3-4), in Dr.Jit.
 
 Every function is differentiable and works on flat Dr.Jit arrays; the matching, ray sampling
 and bookkeeping around them live in :mod:`vsrd_mi.optimise.optimiser`.
@@ -201,7 +201,7 @@ def projection_loss(dec: DecodedBoxes, lanes: ProjectionLanes, beta: float,
 
 
 def silhouette_loss(labels: list, targets: list, eps: float) -> mi.Float:
-    """Mean per-instance BCE of rendered labels against target masks (REFERENCE §3)."""
+    """Mean per-instance BCE of rendered labels against target masks (docs/method.md §3)."""
     total = mi.Float(0.0)
     for p, y in zip(labels, targets):
         total = total + mean(binary_cross_entropy(p, y, eps))

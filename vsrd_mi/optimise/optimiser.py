@@ -6,7 +6,7 @@ integrator with one box per target instance), reads its differentiable parameter
 
 1. every step: sharpness ``s`` and temperature ``tau`` from the cosine schedule (opaque values,
    no recompilation), learning rates decayed exponentially;
-2. Hungarian matching of boxes to target-frame mask boxes on ``-DIoU`` (REFERENCE §4);
+2. Hungarian matching of boxes to target-frame mask boxes on ``-DIoU`` (docs/method.md §4);
 3. rays drawn per frame from the soft masks (:class:`RaySampler`), soft labels rendered by the
    integrator's ray-batch entry point, BCE against the masks;
 4. projection loss on every (frame, box) pair where the matched instance is visible; eikonal loss

@@ -2,7 +2,7 @@
 
 For every seed a sequence is generated with :func:`vsrd_mi.synth.generate_sequence`
 (cached under ``--data-dir``), target frames are selected as the pipeline does
-(:func:`vsrd_mi.data.selection.select_targets`, REFERENCE §5), and
+(:func:`vsrd_mi.data.selection.select_targets`, docs/method.md §5), and
 :func:`vsrd_mi.init.sequence.initialise_target` initialises every target instance from the
 target and its source frames (SGBM depth). Ground truth is read only here, for scoring, after the
 initialisation has run:
@@ -18,31 +18,30 @@ initialisation has run:
 
 Usage::
 
-    python benchmarks/init_accuracy.py --seeds 0 1 2 --frames 50 --out benchmarks/init_accuracy.json
+    vsrd-mi bench init-accuracy --seeds 0 1 2 --frames 50 --json benchmarks/init_accuracy.json
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import sys
+import subprocess
 import time
 from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
 
-from vsrd_mi.data.kitti360 import Sequence, sequence_name
-from vsrd_mi.data.masks import tight_box
-from vsrd_mi.data.observations import opt_from_world
-from vsrd_mi.data.selection import select_targets
-from vsrd_mi.synth import generate_sequence
-from vsrd_mi.synth.config import SynthConfig
-from vsrd_mi.geometry.boxes import wrap_angle
-from vsrd_mi.geometry.boxes2d import iou
-from vsrd_mi.geometry.camera import box_to_2d, image_bounds
-from vsrd_mi.init.config import InitConfig
-from vsrd_mi.init.sequence import initialise_target
+from ..data.kitti360 import Sequence, sequence_name
+from ..data.masks import tight_box
+from ..data.observations import opt_from_world
+from ..data.selection import select_targets
+from ..geometry.boxes import wrap_angle
+from ..geometry.boxes2d import iou
+from ..geometry.camera import box_to_2d, image_bounds
+from ..init.config import InitConfig
+from ..init.sequence import initialise_target
+from ..synth import SynthConfig, generate_sequence
 
 #: Acceptance targets of the task (medians / rates over all scored instances).
 TARGETS = {"centre_error_median_m": 0.5, "dynamic_accuracy": 0.9,
@@ -169,8 +168,7 @@ def run(seeds: list[int], frames: int, data_dir: Path, targets_per_seq: int, arg
 
 
 def _git_commit() -> str | None:
-    """HEAD of the repository holding this script (None outside a git checkout)."""
-    import subprocess
+    """HEAD of the repository holding this module (None outside a git checkout)."""
     try:
         return subprocess.run(["git", "rev-parse", "HEAD"], cwd=Path(__file__).parent, check=True,
                               capture_output=True, text=True).stdout.strip()
@@ -178,26 +176,23 @@ def _git_commit() -> str | None:
         return None
 
 
-def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+def register(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser("init-accuracy", help="accuracy of the stereo initialisation on synthetic sequences",
+                              description=__doc__.split("\n\n")[0])
     p.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     p.add_argument("--frames", type=int, default=50, help="frames per generated sequence")
     p.add_argument("--targets-per-seq", type=int, default=4)
-    p.add_argument("--data-dir", type=Path, default=Path("/tmp/vsrd_mi_init_bench"),
+    p.add_argument("--data-dir", type=Path, default=Path("runs/bench-data/init"),
                    help="where generated sequences are cached")
     p.add_argument("--max-depth", type=float, default=30.0)
     p.add_argument("--unoccluded-iou", type=float, default=0.7)
-    p.add_argument("--out", type=Path, default=Path(__file__).with_suffix(".json"))
-    return p
+    p.add_argument("--json", type=Path, default=Path("benchmarks/init_accuracy.json"))
+    p.set_defaults(func=main)
 
 
-def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+def main(args: argparse.Namespace) -> int:
     result = run(args.seeds, args.frames, args.data_dir, args.targets_per_seq, args)
-    args.out.write_text(json.dumps(result, indent=1) + "\n")
+    args.json.parent.mkdir(parents=True, exist_ok=True)
+    args.json.write_text(json.dumps(result, indent=1) + "\n")
     print(json.dumps({"overall": result["overall"], "passed": result["passed"]}, indent=1))
     return 0 if all(result["passed"].values()) else 1
-
-
-if __name__ == "__main__":
-    sys.exit(main())

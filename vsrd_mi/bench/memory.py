@@ -1,4 +1,4 @@
-"""Memory over many targets in one process (issue: batches must not grow without bound).
+"""Memory over many targets in one process: ``vsrd-mi bench memory`` (batches must not grow without bound).
 
 Runs :func:`vsrd_mi.autolabel.job.process_target` repeatedly in one process on the target
 frames of a sequence (cycling through them, each run into a fresh output directory so nothing is
@@ -8,7 +8,7 @@ the first targets (kernel compilation, allocator pools).
 
 Usage::
 
-    python benchmarks/memory_growth.py --runs 120 --steps 60 --residual --out benchmarks/memory_growth.json
+    vsrd-mi bench memory --runs 120 --steps 60 --residual --json benchmarks/memory.json
 
 writes the JSON and a PNG of RSS per run beside it.
 """
@@ -21,6 +21,17 @@ import tempfile
 import time
 from pathlib import Path
 
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+
+from ..autolabel.job import process_target  # noqa: E402
+from ..batch.tasks import TargetTask  # noqa: E402
+from ..data.kitti360 import Sequence  # noqa: E402
+from ..data.selection import select_targets  # noqa: E402
+from ..optimise.config import default_config  # noqa: E402
+
 
 def rss_mib() -> float:
     """Current resident set size of this process (MiB), from /proc."""
@@ -32,10 +43,6 @@ def rss_mib() -> float:
 
 def plot(rows: list[dict], summary: dict, path: Path) -> None:
     """RSS after every target (PNG)."""
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     fig, ax = plt.subplots(figsize=(7, 3.5))
     ax.plot([r["run"] for r in rows], [r["rss_mib"] for r in rows], marker=".")
     ax.set_xlabel("target run in one process")
@@ -47,24 +54,20 @@ def plot(rows: list[dict], summary: dict, path: Path) -> None:
     plt.close(fig)
 
 
-def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def register(subparsers: argparse._SubParsersAction) -> None:
+    ap = subparsers.add_parser("memory", help="resident memory after every target in one process",
+                               description=__doc__.splitlines()[0])
     ap.add_argument("--root", default="scenes/kitti360-synth")
     ap.add_argument("--sequence", type=int, default=0)
     ap.add_argument("--runs", type=int, default=40)
     ap.add_argument("--steps", type=int, default=60)
-    ap.add_argument("--out", default="benchmarks/memory_growth.json")
+    ap.add_argument("--json", default="benchmarks/memory.json")
     ap.add_argument("--residual", action="store_true",
                     help="with the residual field (the default preset has none; it holds the largest AD graphs)")
-    args = ap.parse_args()
+    ap.set_defaults(func=main)
 
-    import vsrd_mi  # noqa: F401
-    from vsrd_mi.batch.tasks import TargetTask
-    from vsrd_mi.data.kitti360 import Sequence
-    from vsrd_mi.data.selection import select_targets
-    from vsrd_mi.autolabel.job import process_target
-    from vsrd_mi.optimise.config import default_config
 
+def main(args: argparse.Namespace) -> int:
     seq = Sequence(args.root, args.sequence)
     targets = [s.target for s in select_targets(seq)]
     cfg = default_config().replace(steps=args.steps, warmup_steps=args.steps // 3,
@@ -92,11 +95,8 @@ def main() -> int:
     }
     summary["growth_per_run_second_half_mib"] = (
         (second[-1]["rss_mib"] - second[0]["rss_mib"]) / max(len(second) - 1, 1) if len(second) > 1 else None)
-    Path(args.out).write_text(json.dumps({"summary": summary, "rows": rows}, indent=1))
-    plot(rows, summary, Path(args.out).with_suffix(".png"))
+    Path(args.json).write_text(json.dumps({"summary": summary, "rows": rows}, indent=1))
+    plot(rows, summary, Path(args.json).with_suffix(".png"))
     print(json.dumps(summary, indent=1))
     return 0
 
-
-if __name__ == "__main__":
-    raise SystemExit(main())
