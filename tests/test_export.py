@@ -456,3 +456,19 @@ def test_report_draws_in_a_browser(bundled_run, tmp_path):
     total = int(check.split('data-total="')[1].split('"')[0])
     drawn = int(check.split('data-drawn="')[1].split('"')[0])
     assert total == 5 and drawn == total, check
+
+
+def test_eval_of_a_ground_truth_run_on_a_generated_sequence(synth_run, synth_root, capsys):
+    """The ground truth written as labels, evaluated under the mask protocol: every counted car
+    found, AP and AOS 100, headings right; the projection protocol counts hidden cars too."""
+    assert main(["eval", "--pred", str(synth_run), "--gt", str(synth_root), "--sequence", str(SYNTH_SEQ),
+                 "--json"]) == 0
+    result = json.loads(capsys.readouterr().out)
+    hard = result["ap"]["3d"]["0.7"]["hard"]
+    assert hard["n_gt"] > 0 and hard["R40"] == pytest.approx(100.0) and hard["AOS_R40"] == pytest.approx(100.0, abs=1e-3)
+    assert result["pairs"]["all"]["heading_accuracy"] == 1.0 and result["pairs"]["all"]["missed_share"] == 0.0
+    assert result["pairs"]["all"]["mean_iou_3d"] == pytest.approx(1.0, abs=1e-5)
+    assert main(["eval", "--pred", str(synth_run), "--gt", str(synth_root), "--sequence", str(SYNTH_SEQ),
+                 "--json", "--gt-boxes", "projected"]) == 0
+    projected = json.loads(capsys.readouterr().out)
+    assert projected["counts"]["hard"]["n_gt"] >= result["counts"]["hard"]["n_gt"]

@@ -71,7 +71,7 @@ GT_BOXES_DESCRIPTIONS = {
 
 @dataclass
 class EvalConfig:
-    """Evaluation protocol; defaults follow REFERENCE §9."""
+    """Evaluation protocol (``docs/evaluation.md``)."""
 
     #: Overlap thresholds; a match needs IoU strictly greater than the threshold.
     iou_thresholds: tuple[float, ...] = (0.3, 0.5, 0.7)
