@@ -472,3 +472,24 @@ def test_eval_of_a_ground_truth_run_on_a_generated_sequence(synth_run, synth_roo
                  "--json", "--gt-boxes", "projected"]) == 0
     projected = json.loads(capsys.readouterr().out)
     assert projected["counts"]["hard"]["n_gt"] >= result["counts"]["hard"]["n_gt"]
+
+
+def test_report_lists_failures_and_differing_settings(bundled_run, tmp_path):
+    run = tmp_path / "run"
+    shutil.copytree(bundled_run, run)
+    seq_dir = run / BUNDLED
+    shutil.rmtree(run / "report", ignore_errors=True)
+    result_path = next((seq_dir / "boxes").glob("*.json"))
+    other = json.loads(result_path.read_text())
+    other.update(target=15, config={**other["config"], "steps": 7})
+    (seq_dir / "boxes" / "0000000015.json").write_text(json.dumps(other))
+    manifest = json.loads((seq_dir / "manifest.json").read_text())
+    manifest["targets"]["0000000016"] = {"frame": 16, "status": "failed", "seconds": 1.5,
+                                         "error": {"type": "RuntimeError", "message": "out of memory"}}
+    (seq_dir / "manifest.json").write_text(json.dumps(manifest))
+    page = write_report(run, None)
+    text = page.read_text()
+    assert "3</b> target(s): done 2, failed 1" in text
+    assert "Failed targets" in text and "out of memory" in text and "No result file. Error:" in text
+    assert "settings that differ between targets</td><td>steps" in text
+    assert assert_refs_resolve(page) == 5  # the one target with vis/; the copied result has none

@@ -229,14 +229,16 @@ def export_dataset(out: str | os.PathLike, runs: Sequence[str | os.PathLike], ro
     poses: dict[tuple[Path, str], dict[int, np.ndarray]] = {}
     for lf in frames:
         if not lf.image_path.is_file():
-            raise DataError(lf.image_path, f"missing image of frame {lf.frame} of {lf.sequence} (labels: {lf.label_path})")
+            raise DataError(lf.image_path, f"missing image of frame {lf.frame} of {lf.sequence} "
+                                           f"(labels: {lf.label_path})")
         if lf.root not in calibrations:
             calibrations[lf.root] = read_calibration(lf.root)
         if cfg.level:
             if (lf.root, lf.sequence) not in poses:
                 poses[(lf.root, lf.sequence)] = read_cam0_to_world(lf.root, lf.sequence, calibrations[lf.root])
             if lf.frame not in poses[(lf.root, lf.sequence)]:
-                raise DataError(lf.root / "data_poses" / lf.sequence, f"no pose for frame {lf.frame}: --level needs it")
+                raise DataError(lf.root / "data_poses" / lf.sequence,
+                                f"no pose for frame {lf.frame}: --level needs it")
     val = validation_indices(frames, cfg)
     prepare_output(out, cfg.force)
     entries = []
@@ -256,7 +258,8 @@ def export_dataset(out: str | os.PathLike, runs: Sequence[str | os.PathLike], ro
             if not cv2.imwrite(str(image_out), cv2.cvtColor(level_image(image, K, R), cv2.COLOR_RGB2BGR)):
                 raise DataError(image_out, "cannot write the level image")
             pitch, roll = pitch_roll_deg(R)
-            entry.update(n_labels=len(frame_labels), labels_outside_level_image=dropped, pitch_deg=pitch, roll_deg=roll)
+            entry.update(n_labels=len(frame_labels), labels_outside_level_image=dropped, pitch_deg=pitch,
+                         roll_deg=roll)
         else:
             place_image(lf.image_path, image_out, cfg.copy_images)
         write_calib(out / "training" / "calib" / f"{name}.txt", calib_for_frame(calibration, R))

@@ -210,7 +210,8 @@ def evaluation_html(result: dict) -> str:
                  for g, s in result["pairs"].items()]
     pairs = _table(["group", "GT", "matched", "without box", "mean IoU 3D", "mean IoU BEV", "centre error m",
                     "yaw error deg (mod 180)", "heading right"], pair_rows, "eval")
-    return (f"<p>{len(result['frames'])} frame(s) evaluated; ground-truth 2D boxes: <b>{_esc(protocol['gt_boxes'])}</b> "
+    return (f"<p>{len(result['frames'])} frame(s) evaluated; ground-truth 2D boxes: "
+            f"<b>{_esc(protocol['gt_boxes'])}</b> "
             f"({_esc(protocol['gt_boxes_rule'])}); exact precision curve.</p>{ap}{pairs}")
 
 
@@ -291,17 +292,18 @@ def target_visuals(entry: TargetEntry, seq: KittiSequence | None, page_dir: Path
 def target_html(entry: TargetEntry, seq: KittiSequence | None, page_dir: Path, cfg: ReportConfig) -> str:
     """The section of one target."""
     anchor = f"{seq.name if seq else 'seq'}-{entry.frame}"
-    head = f'<h3 id="{_esc(anchor)}">Target {entry.frame} <span class="status {_esc(entry.status)}">{_esc(entry.status)}</span></h3>'
+    status = _esc(entry.status)
+    head = f'<h3 id="{_esc(anchor)}">Target {entry.frame} <span class="status {status}">{status}</span></h3>'
     r = entry.result
     if r is None:
         error = entry.manifest.get("error")
         return head + (f"<p>No result file. Error: <code>{_esc(json.dumps(error))}</code></p>" if error
                        else "<p>No result file.</p>")
     group = r.get("group", [])
+    span = f"{min(group)}-{max(group)}" if group else "-"
     facts = (f"<p>{r.get('steps', '-')} steps in {_num(r.get('seconds'), '.1f')} s"
-             f"{' (stopped early)' if r.get('stopped_early') else ''}; labelled frames {_esc(min(group)) if group else '-'}"
-             f"-{_esc(max(group)) if group else '-'} ({len(group)}); {len(r.get('sources', []))} source frames; "
-             f"{_esc(r.get('initialisation', '-'))}</p>")
+             f"{' (stopped early)' if r.get('stopped_early') else ''}; labelled frames {_esc(span)} ({len(group)}); "
+             f"{len(r.get('sources', []))} source frames; {_esc(r.get('initialisation', '-'))}</p>")
     boxes = [Box3D.from_dict(b) for b in r.get("boxes", [])]
     table = boxes_table(r, ground_truth_ious(seq, entry.frame, boxes), cfg.review_below)
     warnings = r.get("visuals", {}).get("warnings", [])
