@@ -75,7 +75,8 @@ class EvalConfig:
 
     #: Overlap thresholds; a match needs IoU strictly greater than the threshold.
     iou_thresholds: tuple[float, ...] = (0.3, 0.5, 0.7)
-    #: Difficulty name -> minimum 2D box height in pixels (a box counts when taller than this).
+    #: Difficulty name -> minimum 2D box height in pixels: ground truth counts when taller than this,
+    #: a prediction when at least this tall (the devkit's eval.py).
     min_height: dict[str, float] = field(default_factory=lambda: {"easy": 40.0, "hard": 25.0})
     #: Ground truth taller than this (px) enters the matched-pair statistics (default: Hard).
     pair_min_height: float = 25.0
