@@ -18,6 +18,7 @@ SUBCOMMAND_MODULES: tuple[str, ...] = (
     "vsrd_mi.autolabel.cli",
     "vsrd_mi.init.cli",
     "vsrd_mi.evaluate.cli",
+    "vsrd_mi.export.cli",
     "vsrd_mi.batch.cli",
     "vsrd_mi.bench.cli",
 )
