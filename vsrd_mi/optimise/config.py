@@ -265,6 +265,10 @@ class AutolabelConfig:
     #: ``benchmarks/residual_gradients.py`` times both).
     residual_gradients: str = "fused"
     velocity: bool = True
+    #: Occlusion-aware projection loss (not in the paper): a side of a mask box that an occluder
+    #: or the image edge may cut short (:func:`vsrd_mi.data.masks.open_sides`) only bounds the
+    #: projected box from inside. Off: every mask box side is the car's (the paper).
+    occlusion_aware: bool = True
     #: Use the stereo attribute initialisation (else the documented default box, see
     #: :func:`vsrd_mi.scene.default_initial_boxes`).
     init: bool = True
