@@ -202,10 +202,15 @@ class ConsensusConfig:
     gate: float = 2.0
     #: Fuse a car only when at least this many targets' boxes are inliers (at least 2).
     min_targets: int = 2
+    #: A target's box of a car counts ``1 / max(range, near_range)^2`` (its range in metres from
+    #: that target's camera): closer views pin a car down better (stereo depth error and the pixel
+    #: footprint both scale with range squared); within ``near_range`` all count alike.
+    near_range: float = 10.0
 
     def __post_init__(self) -> None:
-        if self.gate <= 0 or self.min_targets < 2:
-            raise ValueError(f"ConsensusConfig: gate must be > 0 and min_targets >= 2, got {self.gate}, {self.min_targets}")
+        if self.gate <= 0 or self.min_targets < 2 or self.near_range <= 0:
+            raise ValueError(f"ConsensusConfig: gate and near_range must be > 0 and min_targets >= 2, got "
+                             f"{self.gate}, {self.near_range}, {self.min_targets}")
 
 
 #: Accepted values of :attr:`HeadingConfig.prior`.
