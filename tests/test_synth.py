@@ -20,8 +20,9 @@ from vsrd_mi.synth import SynthConfig, generate_sequence, render_frame
 from vsrd_mi.synth.cars import (GLASS, TYRE, ProceduralCarConfig, bundled_mesh_paths,
                                      load_car_mesh, procedural_car)
 from vsrd_mi.synth.config import RigConfig, TrafficConfig
-from vsrd_mi.synth.render import car_visibility
-from vsrd_mi.synth.world import WORLD_TO_G, PlacementError, build_world
+from vsrd_mi.synth.attributes import car_visibility
+from vsrd_mi.synth.layout import build_world
+from vsrd_mi.synth.world import WORLD_TO_G, PlacementError
 from vsrd_mi.errors import DataError
 from vsrd_mi.geometry.boxes import wrap_angle
 from vsrd_mi.geometry.boxes2d import iou
@@ -59,7 +60,7 @@ def test_same_seed_same_bytes_different_seed_differs(tmp_path):
     for name, seed in (("a", 4), ("b", 4), ("c", 5)):
         generate_sequence(tmp_path / name, frames=2, n_static=3, n_dynamic=1, seed=seed, config=cfg)
         runs[name] = tree_bytes(tmp_path / name)
-    assert len(runs["a"]) == 1 + 1 + 2 + 2 * 2 + 2 + 1  # calib x2, poses x2, images, masks, xml
+    assert len(runs["a"]) == 1 + 1 + 2 + 2 * 2 + 2 + 2  # calib x2, poses x2, images, masks, xml, attributes
     assert runs["a"] == runs["b"]
     assert runs["a"].keys() == runs["c"].keys()
     differing = [k for k in runs["a"] if runs["a"][k] != runs["c"][k]]
