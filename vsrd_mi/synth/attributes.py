@@ -14,13 +14,15 @@ every frame, every car whose silhouette reaches into the left image gets an entr
   alone inside the image and visible ones those the instance map gives the car;
 - truncation = share of the car's amodal silhouette that lies outside the image, rendered
   alone on a margin around the image (:class:`~vsrd_mi.synth.config.VisibilityConfig`: one image
-  size beyond each border by default, every ``margin_stride``-th pixel). Where the silhouette
-  reaches past the margin (a car right beside the camera, or partly behind it) the share is
-  taken within the margin, a lower bound.
+  size beyond each border by default, every ``margin_stride``-th pixel of each direction). Where
+  the silhouette reaches past the margin (a car right beside the camera, or partly behind it)
+  the share is taken within the margin, a lower bound.
 
 Cheap by construction: the cars stand apart in one "showroom" scene, each in its own frame, and
-each car's rays are cast only through the pixels of its projected 3D box, all cars of a frame in
-one launch.
+each car's rays are cast only through the pixels of its projected mesh's bounding rectangle (of
+its 3D box when part of it is behind the camera), all cars of a frame in one launch. A car whose
+rectangle covers more than ``max_rays_per_car`` pixels is sampled on a sparser pixel grid, the
+same grid for its visible and its amodal count.
 """
 
 from __future__ import annotations
@@ -32,9 +34,9 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import DataError
-from ..geometry.camera import NEAR_PLANE, box_to_2d
+from ..geometry.camera import NEAR_PLANE, box_to_2d, project
 from .render import RayCaster
-from .world import SynthWorld
+from .world import WORLD_TO_G, SynthCar, SynthWorld
 
 #: The ``format`` string of the attributes file.
 ATTRIBUTES_FORMAT = "vsrd-mi attributes 1"
@@ -106,73 +108,88 @@ class AmodalCaster:
         world, vis = self.world, self.world.config.visibility
         (w, h), K = world.rig.image_size, world.rig.K
         T = world.cam_to_world(i, 0)
-        g_to_cam = world.g_to_camera(i, 0)
+        world_to_cam = np.linalg.inv(T)
         k_inv = np.linalg.inv(K)
-        stride = vis.margin_stride
         lo_lim = -np.floor(vis.margin * np.array([w, h]))
         hi_lim = np.array([w, h]) - 1 - lo_lim
-        origins, dirs, owners, pixels, inside_flags = [], [], [], [], []
-        meta = []
+        out = [CarVisibility(car.global_id, 0, 0, 0.0, False) for car in world.cars]
+        origins, dirs, rays = [], [], []
         for ci, car in enumerate(world.cars):
-            box = car.box_world_g(i)
-            corners_z = (box.corners() @ g_to_cam[:3, :3].T + g_to_cam[:3, 3])[:, 2]
-            behind = bool(np.any(corners_z < NEAR_PLANE))
-            rect = box_to_2d(box, K, g_to_cam)
+            rect, behind = _projected_rect(world, car, i, world_to_cam)
             if rect is None:
-                meta.append((behind, False))
+                out[ci] = CarVisibility(car.global_id, 0, 0, 0.0, behind)
                 continue
             lo, hi = np.ceil(rect[:2]), np.floor(rect[2:])
             clipped = bool(np.any(lo < lo_lim) or np.any(hi > hi_lim))
+            out[ci] = CarVisibility(car.global_id, 0, 0, 0.0, behind or clipped)
             lo, hi = np.maximum(lo, lo_lim), np.minimum(hi, hi_lim)
-            meta.append((behind, clipped))
-            uv_in, uv_out = _box_pixels(lo, hi, (w, h), stride)
-            if len(uv_in) == 0:
+            span = np.minimum(hi, [w - 1, h - 1]) - np.maximum(lo, 0) + 1
+            if np.any(span <= 0):
                 continue
+            step = max(1, int(np.ceil(np.sqrt(span[0] * span[1] / vis.max_rays_per_car))))
+            uv_in, uv_out = _box_pixels(lo, hi, (w, h), step, max(step, vis.margin_stride))
             uv = np.concatenate([uv_in, uv_out])
-            d_cam = np.column_stack([uv, np.ones(len(uv))]) @ k_inv.T
-            d_local = d_cam @ T[:3, :3].T @ car.rotation()
+            d_local = np.column_stack([uv, np.ones(len(uv))]) @ k_inv.T @ T[:3, :3].T \
+                @ car.rotation()
             d_local /= np.linalg.norm(d_local, axis=1, keepdims=True)
-            o_local = car.to_local(T[:3, 3][None, :], i)[0] + self.slots[ci]
-            origins.append(np.broadcast_to(o_local, d_local.shape))
+            origins.append(np.broadcast_to(car.to_local(T[:3, 3][None, :], i)[0] + self.slots[ci],
+                                           d_local.shape))
             dirs.append(d_local)
-            owners.append(np.full(len(uv), ci))
-            pixels.append(uv.astype(np.int64))
-            inside_flags.append(np.arange(len(uv)) < len(uv_in))
-        out = [CarVisibility(car.global_id, 0, 0, 0.0, behind or clipped)
-               for car, (behind, clipped) in zip(world.cars, meta)]
+            rays.append((ci, uv.astype(np.int64), len(uv_in), step,
+                         max(step, vis.margin_stride)))
         if not dirs:
             return out
         hits = self.caster.cast(np.concatenate(origins), np.concatenate(dirs))
         hit = hits.valid & (hits.t <= self.reach)
-        owner, uv, inside = np.concatenate(owners), np.concatenate(pixels), np.concatenate(inside_flags)
-        for ci in np.unique(owner):
-            car, sel = world.cars[ci], owner == ci
-            mine_in = hit & sel & inside
-            visible = int(np.count_nonzero(instance_map[uv[mine_in, 1], uv[mine_in, 0]]
-                                           == car.global_id))
-            outside = float(np.count_nonzero(hit & sel & ~inside)) * stride * stride
-            out[ci] = CarVisibility(car.global_id, visible, int(np.count_nonzero(mine_in)),
-                                    outside, out[ci].beyond_margin)
+        start = 0
+        for ci, uv, n_in, step_in, step_out in rays:
+            mine = hit[start:start + len(uv)]
+            start += len(uv)
+            car, inner = world.cars[ci], mine[:n_in]
+            px = uv[:n_in][inner]
+            visible = int(np.count_nonzero(instance_map[px[:, 1], px[:, 0]] == car.global_id))
+            out[ci] = CarVisibility(car.global_id, visible * step_in ** 2,
+                                    int(np.count_nonzero(inner)) * step_in ** 2,
+                                    float(np.count_nonzero(mine[n_in:])) * step_out ** 2,
+                                    out[ci].beyond_margin)
         return out
 
 
-def _box_pixels(lo: np.ndarray, hi: np.ndarray, size: tuple[int, int], stride: int
-                ) -> tuple[np.ndarray, np.ndarray]:
-    """Pixel centres (u, v) of the rectangle ``[lo, hi]`` inside the image (every pixel) and
-    outside it (every ``stride``-th column and row of a grid anchored at pixel (0, 0))."""
+def _projected_rect(world: SynthWorld, car: SynthCar, i: int, world_to_cam: np.ndarray
+                    ) -> tuple[np.ndarray | None, bool]:
+    """Pixel-centre rectangle ``(x1, y1, x2, y2)`` that holds the car's silhouette, and whether
+    part of its box lies behind the near plane.
+
+    The rectangle of the projected mesh vertices when all are in front of the camera; otherwise
+    that of the 3D box clipped at the near plane (None when nothing is in front).
+    """
+    cam = car.world_vertices(i) @ world_to_cam[:3, :3].T + world_to_cam[:3, 3]
+    g_to_cam = world_to_cam @ np.linalg.inv(WORLD_TO_G)
+    box = car.box_world_g(i)
+    corners_z = (box.corners() @ g_to_cam[:3, :3].T + g_to_cam[:3, 3])[:, 2]
+    behind = bool(np.any(corners_z < NEAR_PLANE))
+    if np.all(cam[:, 2] >= NEAR_PLANE):
+        uv = project(world.rig.K, cam)
+        return np.concatenate([uv.min(axis=0), uv.max(axis=0)]), behind
+    return box_to_2d(box, world.rig.K, g_to_cam), behind
+
+
+def _box_pixels(lo: np.ndarray, hi: np.ndarray, size: tuple[int, int], step_in: int,
+                step_out: int) -> tuple[np.ndarray, np.ndarray]:
+    """Pixel centres (u, v) of the rectangle ``[lo, hi]``: inside the image every ``step_in``-th
+    and outside it every ``step_out``-th column and row (grids anchored at pixel (0, 0))."""
     w, h = size
-    u0, v0 = int(max(lo[0], 0)), int(max(lo[1], 0))
-    u1, v1 = int(min(hi[0], w - 1)), int(min(hi[1], h - 1))
-    if u1 < u0 or v1 < v0:
-        return np.zeros((0, 2)), np.zeros((0, 2))
-    u, v = np.meshgrid(np.arange(u0, u1 + 1), np.arange(v0, v1 + 1))
-    inside = np.column_stack([u.ravel(), v.ravel()]).astype(np.float64)
-    gu = np.arange(int(np.ceil(lo[0] / stride)) * stride, int(hi[0]) + 1, stride)
-    gv = np.arange(int(np.ceil(lo[1] / stride)) * stride, int(hi[1]) + 1, stride)
-    u, v = np.meshgrid(gu, gv)
-    u, v = u.ravel(), v.ravel()
-    out = ~((u >= 0) & (u < w) & (v >= 0) & (v < h))
-    return inside, np.column_stack([u[out], v[out]]).astype(np.float64)
+
+    def grid(step: int) -> tuple[np.ndarray, np.ndarray]:
+        gu = np.arange(int(np.ceil(lo[0] / step)) * step, int(hi[0]) + 1, step)
+        gv = np.arange(int(np.ceil(lo[1] / step)) * step, int(hi[1]) + 1, step)
+        u, v = np.meshgrid(gu, gv)
+        u, v = u.ravel(), v.ravel()
+        return np.column_stack([u, v]).astype(np.float64), (u >= 0) & (u < w) & (v >= 0) & (v < h)
+
+    uv, inside = grid(step_in)
+    uv_out, inside_out = grid(step_out)
+    return uv[inside], uv_out[~inside_out]
 
 
 def car_visibility(world: SynthWorld, i: int, instance_map: np.ndarray) -> list[CarVisibility]:

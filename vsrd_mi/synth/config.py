@@ -276,6 +276,9 @@ class VisibilityConfig:
     margin: float = 1.0
     #: Pixel stride of those rays outside the image (each hit counts stride^2 pixels).
     margin_stride: int = 4
+    #: Largest number of rays per car inside the image: a larger silhouette rectangle is sampled
+    #: every k-th pixel in each direction (k as small as keeps the count below this).
+    max_rays_per_car: int = 20000
     #: Decimals of the occlusion and truncation written to the file.
     decimals: int = 4
 
