@@ -244,9 +244,16 @@ def test_projected_boxes_cover_masks(synth):
 def test_visibility_counts_are_consistent(synth):
     summary, seq = synth
     imap = seq.instance_map(0)
-    for vis in car_visibility(summary.world, 0, imap):
+    world = summary.world
+    every_pixel = replace(world.config.visibility, max_rays_per_car=10 ** 7)
+    exact = car_visibility(replace(world, config=replace(world.config, visibility=every_pixel)),
+                           0, imap)
+    for vis, sampled in zip(exact, car_visibility(world, 0, imap)):
         assert vis.visible_px == np.count_nonzero(imap == vis.instance_value)
         assert vis.visible_px <= vis.inside_px or vis.inside_px == 0
+        # large silhouettes are counted on a sparser grid by default
+        assert sampled.visible_px == pytest.approx(vis.visible_px, rel=0.05, abs=1)
+        assert sampled.inside_px == pytest.approx(vis.inside_px, rel=0.05, abs=1)
 
 
 # --------------------------------------------------------------------------------------------

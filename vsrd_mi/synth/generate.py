@@ -2,7 +2,7 @@
 
 :func:`generate_sequence` lays out a street (:mod:`~vsrd_mi.synth.world`), ray-casts both
 rectified cameras of every frame with Mitsuba (:mod:`~vsrd_mi.synth.render`) and writes the
-KITTI-360 release layout (REFERENCE section 8)::
+KITTI-360 release layout::
 
     calibration/perspective.txt, calibration/calib_cam_to_pose.txt
     data_poses/<seq>/cam0_to_world.txt, data_poses/<seq>/poses.txt
