@@ -117,6 +117,8 @@ def build_world(seq: int = 0, frames: int = 60, n_static: int = 4, n_dynamic: in
     if config.traffic.parking not in ("scatter", "rows"):
         raise ValueError(f"TrafficConfig.parking must be 'scatter' or 'rows', "
                          f"not {config.traffic.parking!r}")
+    if config.traffic.parking == "rows" and not config.traffic.vehicle_mix:
+        raise ValueError("TrafficConfig.parking = 'rows' needs a TrafficConfig.vehicle_mix")
     rng = np.random.default_rng([seed, seq])
     stream = lambda k: np.random.default_rng([seed, seq, k])  # noqa: E731
     models = [load_car_mesh(p) for p in (bundled_mesh_paths() if meshes is None else meshes)]
@@ -165,8 +167,6 @@ def build_world(seq: int = 0, frames: int = 60, n_static: int = 4, n_dynamic: in
                     f"{config.traffic.max_tries} tries: ask for fewer cars or more frames")
     edges = road_edges(road, widths)
     if rows:
-        if deck is None:
-            raise ValueError("TrafficConfig.parking = 'rows' needs a TrafficConfig.vehicle_mix")
         parked = place_rows(stream(STREAM_PARKING), config, cl, segments, edges, deck, cars,
                             frames, len(cars) + 1)
         order = np.argsort([cl.to_road(c.centre0[None, :2])[0][0] for c in parked], kind="stable")

@@ -20,6 +20,10 @@ from .vehicles import VehicleDeck
 from .world import Centreline, SynthCar, collides
 
 
+#: Cosines / sines below this count as zero (parallel or perpendicular bays).
+NEGLIGIBLE = 1e-6
+
+
 @dataclass(frozen=True)
 class ParkingSegment:
     """A stretch of one side of the street with one parking layout."""
@@ -96,8 +100,8 @@ def _spacing(prev: SynthCar, length: float, width: float, angle_deg: float, gap:
     a = np.deg2rad(angle_deg)
     lengths = 0.5 * (prev.size_lwh[0] + length) + gap
     widths = 0.5 * (prev.size_lwh[1] + width) + gap
-    along = lengths / np.cos(a) if np.cos(a) > 1e-6 else np.inf
-    across = widths / np.sin(a) if np.sin(a) > 1e-6 else np.inf
+    along = lengths / np.cos(a) if np.cos(a) > NEGLIGIBLE else np.inf
+    across = widths / np.sin(a) if np.sin(a) > NEGLIGIBLE else np.inf
     return float(min(along, across))
 
 

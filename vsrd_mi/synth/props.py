@@ -17,7 +17,7 @@ from .config import PROP_KINDS, PropConfig, RoadConfig
 from .world import (PROP, SEM_PERSON, SEM_POLE, SEM_TRAFFIC_SIGN, SEM_TRASH_BIN, SEM_VEGETATION,
                     Centreline, MeshParts, PropPart, SynthCar, rot_z)
 
-#: Footprint radius (metres) of each kind for collision checks, as a function of its draws.
+#: Radius (metres) of the ground circle a pedestrian covers, for the collision checks.
 PERSON_FOOTPRINT = 0.3
 #: Subdivisions of the icospheres of heads and tree crowns.
 ICO_SUBDIVISIONS = 1
@@ -29,6 +29,10 @@ LAMP_HEAD = (0.6, 0.25, 0.15)
 SIGN_THICKNESS = 0.03
 #: Shares of a pedestrian's height taken by the legs and the torso (the head takes the rest).
 LEGS_SHARE, TORSO_SHARE = 0.47, 0.40
+#: A pedestrian's legs span this share of the torso's width and depth.
+LEGS_SPAN = 0.7
+#: A trunk reaches this share of the crown radius into the crown.
+TRUNK_INTO_CROWN = 0.3
 
 
 def _mesh(m: trimesh.Trimesh) -> tuple[np.ndarray, np.ndarray]:
@@ -98,7 +102,7 @@ class PropBuilder:
                       self._instance(SEM_TRAFFIC_SIGN), self._pick(cfg.sign_palette))
         elif kind == "tree":
             trunk_h, crown_r = u(cfg.trunk_height), u(cfg.crown_radius)
-            self._add("trunk", *_cylinder(u(cfg.trunk_radius), trunk_h + 0.3 * crown_r,
+            self._add("trunk", *_cylinder(u(cfg.trunk_radius), trunk_h + TRUNK_INTO_CROWN * crown_r,
                                           cfg.sections), place, yaw, SEM_VEGETATION, 0,
                       cfg.bark_rgb)
             sphere = trimesh.creation.icosphere(subdivisions=ICO_SUBDIVISIONS)
@@ -112,8 +116,8 @@ class PropBuilder:
             inst = self._instance(SEM_PERSON)
             legs, torso = LEGS_SHARE * h, TORSO_SHARE * h
             head_r = 0.5 * (1.0 - LEGS_SHARE - TORSO_SHARE) * h
-            self._add("legs", *_box((0.7 * d, 0.7 * w, legs), 0.0), place, yaw, SEM_PERSON, inst,
-                      self._pick(cfg.clothes_palette))
+            self._add("legs", *_box((LEGS_SPAN * d, LEGS_SPAN * w, legs), 0.0), place, yaw,
+                      SEM_PERSON, inst, self._pick(cfg.clothes_palette))
             self._add("torso", *_box((d, w, torso), legs), place, yaw, SEM_PERSON, inst,
                       self._pick(cfg.clothes_palette))
             v, f = _mesh(trimesh.creation.icosphere(subdivisions=ICO_SUBDIVISIONS, radius=head_r))

@@ -131,6 +131,8 @@ class VehicleConfig:
     #: Hub disc: radius as a fraction of the wheel radius, and how far it stands out of the tyre.
     hub_fraction: float = 0.62
     hub_proud: float = 0.005
+    #: How deep the hub disc reaches into the tyre.
+    hub_depth: float = 0.01
     #: Body bottom above the ground as a fraction of the wheel radius.
     clearance_fraction: Range = (0.45, 0.65)
     #: Gap between a tyre and its wheel arch.
@@ -337,7 +339,7 @@ def build_vehicle(rng: np.random.Generator, vclass: VehicleClass | str,
         for s in (-1.0, 1.0):
             y_out, y_in = s * (hw - inset), s * (hw - inset - tyre_w)
             parts.append((*_wheel(x, radius, y_in, y_out, config.wheel_sections), TYRE))
-            hub = _wheel(x, config.hub_fraction * radius, y_out - s * 0.01,
+            hub = _wheel(x, config.hub_fraction * radius, y_out - s * config.hub_depth,
                          y_out + s * config.hub_proud, config.wheel_sections)
             hub[0][:, 2] += (1.0 - config.hub_fraction) * radius
             parts.append((*hub, RIM))
