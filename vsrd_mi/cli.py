@@ -15,6 +15,7 @@ import sys
 SUBCOMMAND_MODULES: tuple[str, ...] = (
     "vsrd_mi.scene.cli",
     "vsrd_mi.synth.cli",
+    "vsrd_mi.synth.suite_cli",
     "vsrd_mi.autolabel.cli",
     "vsrd_mi.init.cli",
     "vsrd_mi.evaluate.cli",
