@@ -142,7 +142,8 @@ def projected_boxes(dec: DecodedBoxes, lanes: ProjectionLanes, profile: CarProfi
     """Differentiable 2D footprints ``(x1, y1, x2, y2, valid)`` of the lanes' boxes.
 
     Without a ``profile`` (or with a zero one) the footprint of the 8 box corners (the paper).
-    With one, the footprint of the car the box bounds, as parts: the body above
+    With one, the footprint of the car the box bounds, as parts: the body (``profile.mirror``
+    narrower on each side than the box, which holds the mirrors) above
     ``profile.clearance`` over the full length, its plan's corners cut by ``profile.corner``
     (two crossed boxes, one ``corner`` narrower on each side, one ``corner`` shorter at each
     end), and the full height over the length less ``profile.overhang`` at each end, where the
@@ -153,13 +154,14 @@ def projected_boxes(dec: DecodedBoxes, lanes: ProjectionLanes, profile: CarProfi
     boxes = LaneBoxes.gather(dec, lanes.box, lanes.dt)  # once: every part is built from it
     if profile is None or not profile.enabled:
         return _footprint(box_corners(boxes), lanes)
+    body = profile.mirror  # the box holds the mirrors, the body is that much narrower per side
     if profile.corner > 0:  # the body's plan: an octagon, the union of two crossed boxes
-        parts = [box_corners(boxes, raise_bottom=profile.clearance, narrow=profile.corner),
-                 box_corners(boxes, raise_bottom=profile.clearance, shorten=profile.corner)]
+        parts = [box_corners(boxes, raise_bottom=profile.clearance, narrow=body + profile.corner),
+                 box_corners(boxes, raise_bottom=profile.clearance, shorten=profile.corner, narrow=body)]
     else:
-        parts = [box_corners(boxes, raise_bottom=profile.clearance)]
+        parts = [box_corners(boxes, raise_bottom=profile.clearance, narrow=body)]
     if profile.clearance > 0:  # below the bumpers only the wheels, between the overhangs
-        parts.append(box_corners(boxes, shorten=profile.overhang))
+        parts.append(box_corners(boxes, shorten=profile.overhang, narrow=body))
     x1, y1, x2, y2, valid = _footprint(parts[0], lanes)
     for corners in parts[1:]:
         p = _footprint(corners, lanes)
