@@ -220,6 +220,28 @@ class ConsensusConfig:
                              f"{self.gate}, {self.near_range}, {self.min_targets}")
 
 
+@dataclass(frozen=True)
+class AxisConfig:
+    """Length axis of parked cars from yaw hypotheses before the optimisation (not in the paper;
+    :mod:`vsrd_mi.optimise.axis`)."""
+
+    #: Try the hypotheses at all (off: the initialisation's yaw).
+    enabled: bool = True
+    #: A hypothesis replaces the initial yaw when its fitted cost is below this fraction of the
+    #: initial yaw's: the swap must be clearly better, since the initial yaw comes from the cloud.
+    switch_ratio: float = 0.7
+    #: Cars seen in fewer frames keep the initial yaw (too few views to compare widths).
+    min_views: int = 3
+    #: ... and the switch must also raise the mean silhouette IoU of the box with the masks by this
+    #: much (a turned box's outline differs from a car's in a few hundredths of IoU).
+    min_silhouette_gain: float = 0.02
+
+    def __post_init__(self) -> None:
+        if not 0.0 < self.switch_ratio <= 1.0 or self.min_views < 1:
+            raise ValueError(f"axis.switch_ratio must be in (0, 1] and axis.min_views >= 1, got "
+                             f"{self.switch_ratio}, {self.min_views}")
+
+
 #: Accepted values of :attr:`HeadingConfig.prior`.
 HEADING_PRIORS = ("none", "right-hand", "left-hand")
 
@@ -297,6 +319,7 @@ class AutolabelConfig:
     early_stop: EarlyStop = field(default_factory=EarlyStop)
     consensus: ConsensusConfig = field(default_factory=ConsensusConfig)
     heading: HeadingConfig = field(default_factory=HeadingConfig)
+    axis: AxisConfig = field(default_factory=AxisConfig)
 
     def replace(self, **kw) -> "AutolabelConfig":
         return dataclasses.replace(self, **kw)
@@ -348,6 +371,7 @@ class AutolabelConfig:
         d["early_stop"] = EarlyStop(**d.get("early_stop", {}))
         d["consensus"] = ConsensusConfig(**d.get("consensus", {}))
         d["heading"] = HeadingConfig(**d.get("heading", {}))
+        d["axis"] = AxisConfig(**d.get("axis", {}))
         return AutolabelConfig(**d)
 
 
