@@ -238,19 +238,13 @@ def prediction_files(label_dir: Path) -> dict[int, Path]:
             if (m := PREDICTION_FILE.match(p.name)) and p.is_file()}
 
 
-def evaluate_sequence(pred_dir: str | os.PathLike, gt_root: str | os.PathLike, sequence: int | str,
-                      frames: Iterable[int] | None = None, config: EvalConfig | None = None) -> dict:
-    """Evaluate the prediction label files of one KITTI-360 sequence against its ground truth.
-
-    Predictions are read from ``pred_dir/%010d.txt`` or, when it exists,
-    ``pred_dir/<sequence>/labels/%010d.txt``. With ``frames=None`` every frame that has a
-    prediction file is evaluated (frames without a file are *not* counted as misses). With
-    ``frames`` given exactly those frames are evaluated: a listed frame without a prediction file
-    counts as having no predictions (all its ground truth missed), prediction files of unlisted
-    frames are ignored. Every evaluated frame must be a frame of the sequence (pose and image).
-    Returns :func:`evaluate_frames`'s dict plus ``sequence``, ``prediction_dir``, ``frames`` and
-    ``frames_without_predictions``.
-    """
+def sequence_frames(pred_dir: str | os.PathLike, gt_root: str | os.PathLike, sequence: int | str,
+                    frames: Iterable[int] | None = None, config: EvalConfig | None = None
+                    ) -> tuple[list[FrameBoxes], dict]:
+    """The :class:`FrameBoxes` of one sequence's evaluated frames (see :func:`evaluate_sequence`
+    for which frames and where predictions are read), and a dict of ``sequence``,
+    ``prediction_dir``, ``frames``, ``frames_without_predictions`` and ``attributes``. Frames of
+    several sequences can be pooled in one :func:`evaluate_frames`."""
     config = config or EvalConfig()
     seq = KittiSequence(gt_root, sequence)
     attributes = read_attributes(seq.root, seq.name)
@@ -281,10 +275,29 @@ def evaluate_sequence(pred_dir: str | os.PathLike, gt_root: str | os.PathLike, s
         gt_attributes = [attributes.lookup(f, b.instance_id) for b in gt] if attributes else None
         evaluated.append(FrameBoxes(frame=f, gt=gt, gt_height=gt_height, pred=pred, pred_score=score,
                                     pred_height=height, gt_attributes=gt_attributes))
+    info = {"sequence": seq.name, "prediction_dir": str(label_dir), "frames": selected,
+            "frames_without_predictions": [f for f in selected if f not in files],
+            "attributes": str(attributes.path) if attributes else None}
+    return evaluated, info
+
+
+def evaluate_sequence(pred_dir: str | os.PathLike, gt_root: str | os.PathLike, sequence: int | str,
+                      frames: Iterable[int] | None = None, config: EvalConfig | None = None) -> dict:
+    """Evaluate the prediction label files of one KITTI-360 sequence against its ground truth.
+
+    Predictions are read from ``pred_dir/%010d.txt`` or, when it exists,
+    ``pred_dir/<sequence>/labels/%010d.txt``. With ``frames=None`` every frame that has a
+    prediction file is evaluated (frames without a file are *not* counted as misses). With
+    ``frames`` given exactly those frames are evaluated: a listed frame without a prediction file
+    counts as having no predictions (all its ground truth missed), prediction files of unlisted
+    frames are ignored. Every evaluated frame must be a frame of the sequence (pose and image).
+    Returns :func:`evaluate_frames`'s dict plus ``sequence``, ``prediction_dir``, ``frames`` and
+    ``frames_without_predictions``.
+    """
+    config = config or EvalConfig()
+    evaluated, info = sequence_frames(pred_dir, gt_root, sequence, frames, config)
     result = evaluate_frames(evaluated, config)
-    result.update(sequence=seq.name, prediction_dir=str(label_dir), frames=selected,
-                  frames_without_predictions=[f for f in selected if f not in files],
-                  attributes=str(attributes.path) if attributes else None)
+    result.update(info)
     return result
 
 
