@@ -173,7 +173,7 @@ def test_car_profile_projection_by_hand():
     v = 286.875) and the wheels' ground contact (y = 1 at z = 8.9: v = 296.18)."""
     field, centre, size = straight_ahead()
     lanes = losses.ProjectionLanes(np.array([0]), np.zeros(1), np.eye(4)[None], np.zeros((1, 4)), K, IMAGE_BOUNDS)
-    x1, y1, x2, y2, valid = losses.projected_boxes(field.decode(), lanes, CarProfile(clearance=0.25, overhang=0.9, corner=0.0))
+    x1, y1, x2, y2, valid = losses.projected_boxes(field.decode(), lanes, CarProfile(clearance=0.25, overhang=0.9, corner=0.0, mirror=0.0))
     got = np.array([values(v)[0] for v in (x1, y1, x2, y2)])
     by_hand = [288.75, 202.5, 413.75, 240 + 500 * 1.0 / 8.9]
     np.testing.assert_allclose(got, by_hand, atol=2e-3)
@@ -181,7 +181,7 @@ def test_car_profile_projection_by_hand():
     np.testing.assert_allclose(got, np_profile_footprint(b["centres"][0], b["sizes"][0], 0.0, np.eye(4), 0.25, 0.9),
                                atol=2e-4)
     # a zero profile is the box's corners
-    zero = losses.projected_boxes(field.decode(), lanes, CarProfile(clearance=0.0, overhang=0.0, corner=0.0))
+    zero = losses.projected_boxes(field.decode(), lanes, CarProfile(clearance=0.0, overhang=0.0, corner=0.0, mirror=0.0))
     plain = losses.projected_boxes(field.decode(), lanes)
     assert [values(v)[0] for v in zero[:4]] == [values(v)[0] for v in plain[:4]]
     # a camera below the bumpers (moved 1 m down: the box's bottom at y = 0): the body's underside
@@ -190,7 +190,7 @@ def test_car_profile_projection_by_hand():
     low = np.eye(4)
     low[1, 3] = -1.0
     lanes = losses.ProjectionLanes(np.array([0]), np.zeros(1), low[None], np.zeros((1, 4)), K, IMAGE_BOUNDS)
-    got = losses.projected_boxes(field.decode(), lanes, CarProfile(clearance=0.25, overhang=0.9, corner=0.0))
+    got = losses.projected_boxes(field.decode(), lanes, CarProfile(clearance=0.25, overhang=0.9, corner=0.0, mirror=0.0))
     np.testing.assert_allclose([values(v)[0] for v in got[1:4:2]], [140.0, 240.0], atol=2e-3)
 
 
@@ -200,7 +200,7 @@ def test_car_profile_parts_are_capped_on_small_boxes():
     field = field_of(np.array([[0.0, 0.5, 10.0]]), np.array([[1.0, 0.5, 1.0]]), np.zeros(1))
     b = field.numpy_boxes()
     lanes = losses.ProjectionLanes(np.array([0]), np.zeros(1), np.eye(4)[None], np.zeros((1, 4)), K, IMAGE_BOUNDS)
-    got = losses.projected_boxes(field.decode(), lanes, CarProfile(clearance=0.25, overhang=0.9, corner=0.0))
+    got = losses.projected_boxes(field.decode(), lanes, CarProfile(clearance=0.25, overhang=0.9, corner=0.0, mirror=0.0))
     size = b["sizes"][0]
     expected = np_profile_footprint(b["centres"][0], size, 0.0, np.eye(4), min(0.25, 0.3 * size[1]),
                                     min(0.9, 0.3 * size[2]))
@@ -235,15 +235,28 @@ def test_car_profile_cut_corners_project_the_octagonal_prism(yaw):
     field = field_of(centre[None], size[None], np.array([yaw]))
     b = field.numpy_boxes()
     lanes = losses.ProjectionLanes(np.array([0]), np.zeros(1), np.eye(4)[None], np.zeros((1, 4)), K, IMAGE_BOUNDS)
-    profile = CarProfile(clearance=0.25, overhang=0.9, corner=0.3)
+    profile = CarProfile(clearance=0.25, overhang=0.9, corner=0.3, mirror=0.0)
     got = np.array([values(v)[0] for v in losses.projected_boxes(field.decode(), lanes, profile)[:4]])
     expected = np_cut_corner_footprint(b["centres"][0], b["sizes"][0], float(b["yaws"][0]), np.eye(4), 0.25, 0.9, 0.3)
     np.testing.assert_allclose(got, expected, atol=2e-3)
     uncut = np.array([values(v)[0] for v in losses.projected_boxes(
-        field.decode(), lanes, CarProfile(clearance=0.25, overhang=0.9, corner=0.0))[:4]])
+        field.decode(), lanes, CarProfile(clearance=0.25, overhang=0.9, corner=0.0, mirror=0.0))[:4]])
     assert got[0] >= uncut[0] - 1e-4 and got[2] <= uncut[2] + 1e-4
     if yaw in (0.6, math.pi / 4):
         assert got[0] > uncut[0] + 1.0 and got[2] < uncut[2] - 1.0  # oblique: both sides in by > 1 px
+
+
+@pytest.mark.parametrize("yaw", [0.0, 0.6, 2.0])
+def test_car_profile_mirror_narrows_the_body_inside_the_box(yaw):
+    """With ``mirror`` the projected body is that of a box 2 * mirror narrower (the box holds the
+    mirrors): the same footprint as the mirror-free profile of the narrower box."""
+    centre, size = np.array([0.5, 0.2, 12.0]), np.array([2.1, 1.5, 4.4])
+    lanes = losses.ProjectionLanes(np.array([0]), np.zeros(1), np.eye(4)[None], np.zeros((1, 4)), K, IMAGE_BOUNDS)
+    wide = field_of(centre[None], size[None], np.array([yaw]))
+    narrow = field_of(centre[None], (size - [0.24, 0.0, 0.0])[None], np.array([yaw]))
+    got = [values(v)[0] for v in losses.projected_boxes(wide.decode(), lanes, CarProfile(mirror=0.12))[:4]]
+    ref = [values(v)[0] for v in losses.projected_boxes(narrow.decode(), lanes, CarProfile(mirror=0.0))[:4]]
+    np.testing.assert_allclose(got, ref, atol=2e-3)
 
 
 def test_car_profile_cut_corners_alone_act_without_clearance():
@@ -252,7 +265,7 @@ def test_car_profile_cut_corners_alone_act_without_clearance():
     field = field_of(np.array([[0.5, 0.2, 12.0]]), np.array([[1.8, 1.5, 4.4]]), np.array([0.6]))
     b = field.numpy_boxes()
     lanes = losses.ProjectionLanes(np.array([0]), np.zeros(1), np.eye(4)[None], np.zeros((1, 4)), K, IMAGE_BOUNDS)
-    got = losses.projected_boxes(field.decode(), lanes, CarProfile(clearance=0.0, overhang=0.0, corner=0.3))
+    got = losses.projected_boxes(field.decode(), lanes, CarProfile(clearance=0.0, overhang=0.0, corner=0.3, mirror=0.0))
     w, h, l = 0.5 * b["sizes"][0]
     plan = [(sx * w, sz * (l - 0.3)) for sx in (-1, 1) for sz in (-1, 1)] + [
         (sx * (w - 0.3), sz * l) for sx in (-1, 1) for sz in (-1, 1)]
@@ -266,10 +279,9 @@ def test_car_profile_cut_corners_alone_act_without_clearance():
 
 
 def test_car_profile_rejects_negative_values():
-    with pytest.raises(ValueError, match="clearance, overhang and corner"):
-        CarProfile(clearance=-0.1)
-    with pytest.raises(ValueError, match="clearance, overhang and corner"):
-        CarProfile(corner=-0.1)
+    for field in ("clearance", "overhang", "corner", "mirror"):
+        with pytest.raises(ValueError, match="clearance, overhang, corner and mirror must be >= 0"):
+            CarProfile(**{field: -0.1})
 
 
 @pytest.mark.parametrize("containment, excess", [(False, 0.0), (True, 0.0), (True, 0.25), (True, 1.0)])
@@ -368,7 +380,7 @@ def ad_and_central_differences(field, keys, loss, eps: dict) -> tuple[dict, dict
     return ad, fd
 
 
-@pytest.mark.parametrize("profile", [None, CarProfile(clearance=0.25, overhang=0.9, corner=0.0), CarProfile()])
+@pytest.mark.parametrize("profile", [None, CarProfile(clearance=0.25, overhang=0.9, corner=0.0, mirror=0.0), CarProfile()])
 def test_projection_loss_gradients_match_finite_differences(profile):
     field, lanes = two_box_lanes()
     keys = ("box_centre", "box_dims", "box_yaw", "box_velocity")

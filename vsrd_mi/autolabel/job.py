@@ -31,6 +31,7 @@ from ..geometry.boxes import Box3D
 from ..geometry.boxes2d import iou_matrix
 from ..init.sequence import initialise_target
 from ..optimise.config import PRESETS, AutolabelConfig
+from ..optimise.axis import choose_yaws
 from ..optimise.heading import decide_headings
 from ..optimise.optimiser import BoxOptimiser
 from ..scene.initial import default_initial_boxes
@@ -83,6 +84,11 @@ def process_target(task: TargetTask) -> TargetResult:
     if obs.num_instances == 0:
         return TargetResult(status="skipped", seconds=0.0, outputs=(), error="no target instances")
     start, init_ref, note = initial_boxes(seq, spec, obs, cfg)
+    if init_ref is not None:  # parked cars: the length axis the masks support
+        axes = choose_yaws(start, obs, cfg.axis, anchor=cfg.weights.init)
+        start = init_ref = [dataclasses.replace(b, yaw=a.yaw) for b, a in zip(start, axes)]
+        switched = [int(b.instance_id) for b, a in zip(start, axes) if a.switched]
+        note += f"; axis turned for {switched}" if switched else ""
     optimiser = BoxOptimiser(obs, start, cfg, init_boxes=init_ref)
     result = optimiser.run()
     index = np.array([int(np.flatnonzero(obs.instance_ids == i)[0]) for i in result.instance_ids])

@@ -17,6 +17,7 @@ BENCH_MODULES: tuple[str, ...] = (
     "vsrd_mi.bench.init_accuracy",
     "vsrd_mi.bench.memory",
     "vsrd_mi.bench.real_sample",
+    "vsrd_mi.bench.validation",
 )
 
 

@@ -135,22 +135,29 @@ class CarProfile:
     0.677. A box-shaped van then comes out ~0.4 m long instead of 0.1 m. Sensitivity (with the
     consensus, six sequences; ``benchmarks/mixed_sequences_corner0{2,4}.json``): corner 0.2 / 0.3 /
     0.4 m give parked 0.755 / 0.755 / 0.750, moving 0.704 / 0.699 / 0.692.
-    The car's other departures from its box (mirrors, roof, hood) vary by model and are left to
-    the loss; ``overhang = clearance = corner = 0`` projects the box corners (the paper).
+    A box holds the whole vehicle, mirrors included, but the mirrors are thin and sit a third of
+    the way back: they widen a car's mask box only in views along its axis, while its body sets the
+    mask's sides in every other view. So the projected body is ``mirror`` metres narrower on each
+    side than the box: manufacturers' widths with and without mirrors differ by 0.21-0.25 m on
+    passenger cars (VW Golf VII 2.027 / 1.799 m, Passat B8 2.083 / 1.832 m, BMW X5 G05 2.218 /
+    2.004 m, Tesla Model 3 2.089 / 1.849 m), 0.12 m a side; vans and pickups have larger mirrors.
+    The car's other departures from its box (roof, hood) vary by model and are left to the loss;
+    ``overhang = clearance = corner = mirror = 0`` projects the box corners (the paper).
     """
 
     clearance: float = 0.25
     overhang: float = 0.9
     corner: float = 0.3
+    mirror: float = 0.12
 
     @property
     def enabled(self) -> bool:
-        return self.clearance > 0 or self.overhang > 0 or self.corner > 0
+        return self.clearance > 0 or self.overhang > 0 or self.corner > 0 or self.mirror > 0
 
     def __post_init__(self) -> None:
-        if self.clearance < 0 or self.overhang < 0 or self.corner < 0:
-            raise ValueError("CarProfile: clearance, overhang and corner must be >= 0, got "
-                             f"{self.clearance}, {self.overhang}, {self.corner}")
+        if self.clearance < 0 or self.overhang < 0 or self.corner < 0 or self.mirror < 0:
+            raise ValueError("CarProfile: clearance, overhang, corner and mirror must be >= 0, got "
+                             f"{self.clearance}, {self.overhang}, {self.corner}, {self.mirror}")
 
 
 @dataclass(frozen=True)
@@ -202,10 +209,37 @@ class ConsensusConfig:
     gate: float = 2.0
     #: Fuse a car only when at least this many targets' boxes are inliers (at least 2).
     min_targets: int = 2
+    #: A target's box of a car counts ``1 / max(range, near_range)^2`` (its range in metres from
+    #: that target's camera): closer views pin a car down better (stereo depth error and the pixel
+    #: footprint both scale with range squared); within ``near_range`` all count alike.
+    near_range: float = 10.0
 
     def __post_init__(self) -> None:
-        if self.gate <= 0 or self.min_targets < 2:
-            raise ValueError(f"ConsensusConfig: gate must be > 0 and min_targets >= 2, got {self.gate}, {self.min_targets}")
+        if self.gate <= 0 or self.min_targets < 2 or self.near_range <= 0:
+            raise ValueError(f"ConsensusConfig: gate and near_range must be > 0 and min_targets >= 2, got "
+                             f"{self.gate}, {self.near_range}, {self.min_targets}")
+
+
+@dataclass(frozen=True)
+class AxisConfig:
+    """Length axis of parked cars from yaw hypotheses before the optimisation (not in the paper;
+    :mod:`vsrd_mi.optimise.axis`)."""
+
+    #: Try the hypotheses at all (off: the initialisation's yaw).
+    enabled: bool = True
+    #: A hypothesis replaces the initial yaw when its fitted cost is below this fraction of the
+    #: initial yaw's: the swap must be clearly better, since the initial yaw comes from the cloud.
+    switch_ratio: float = 0.7
+    #: Cars seen in fewer frames keep the initial yaw (too few views to compare widths).
+    min_views: int = 3
+    #: ... and the switch must also raise the mean silhouette IoU of the box with the masks by this
+    #: much (a turned box's outline differs from a car's in a few hundredths of IoU).
+    min_silhouette_gain: float = 0.02
+
+    def __post_init__(self) -> None:
+        if not 0.0 < self.switch_ratio <= 1.0 or self.min_views < 1:
+            raise ValueError(f"axis.switch_ratio must be in (0, 1] and axis.min_views >= 1, got "
+                             f"{self.switch_ratio}, {self.min_views}")
 
 
 #: Accepted values of :attr:`HeadingConfig.prior`.
@@ -265,6 +299,10 @@ class AutolabelConfig:
     #: ``benchmarks/residual_gradients.py`` times both).
     residual_gradients: str = "fused"
     velocity: bool = True
+    #: Occlusion-aware projection loss (not in the paper): a side of a mask box that an occluder
+    #: or the image edge may cut short (:func:`vsrd_mi.data.masks.open_sides`) only bounds the
+    #: projected box from inside. Off: every mask box side is the car's (the paper).
+    occlusion_aware: bool = True
     #: Use the stereo attribute initialisation (else the documented default box, see
     #: :func:`vsrd_mi.scene.default_initial_boxes`).
     init: bool = True
@@ -281,6 +319,7 @@ class AutolabelConfig:
     early_stop: EarlyStop = field(default_factory=EarlyStop)
     consensus: ConsensusConfig = field(default_factory=ConsensusConfig)
     heading: HeadingConfig = field(default_factory=HeadingConfig)
+    axis: AxisConfig = field(default_factory=AxisConfig)
 
     def replace(self, **kw) -> "AutolabelConfig":
         return dataclasses.replace(self, **kw)
@@ -332,6 +371,7 @@ class AutolabelConfig:
         d["early_stop"] = EarlyStop(**d.get("early_stop", {}))
         d["consensus"] = ConsensusConfig(**d.get("consensus", {}))
         d["heading"] = HeadingConfig(**d.get("heading", {}))
+        d["axis"] = AxisConfig(**d.get("axis", {}))
         return AutolabelConfig(**d)
 
 

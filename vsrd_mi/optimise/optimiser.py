@@ -178,7 +178,7 @@ class BoxOptimiser:
     # -- supervision ---------------------------------------------------------------------------
     def _projection_lanes(self) -> losses.ProjectionLanes:
         obs = self.obs
-        box, dt, w2c, tgt = [], [], [], []
+        box, dt, w2c, tgt, sides = [], [], [], [], []
         for f in self.frames:
             for n in range(self.n):
                 inst = self.perm[n]
@@ -187,8 +187,10 @@ class BoxOptimiser:
                     dt.append(obs.dt[f])
                     w2c.append(self.world_to_cam[f])
                     tgt.append(obs.boxes2d[f, inst])
+                    sides.append(obs.open_sides[f, inst] if self.cfg.occlusion_aware else np.zeros(4, bool))
         return losses.ProjectionLanes(np.array(box), np.array(dt), np.array(w2c).reshape(-1, 4, 4),
-                                      np.array(tgt).reshape(-1, 4), obs.K[0], self.bounds)
+                                      np.array(tgt).reshape(-1, 4), obs.K[0], self.bounds,
+                                      np.array(sides, bool).reshape(-1, 4))
 
     def _match(self, dec) -> np.ndarray:
         """Hungarian matching of boxes to target-frame instances on -DIoU."""

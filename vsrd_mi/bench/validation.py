@@ -1,0 +1,155 @@
+"""Accuracy on a synthetic set: ``vsrd-mi bench validation [--set validation|development]``.
+
+The sets of :mod:`vsrd_mi.synth.suites` (six hard streets each: mixed classes parked every way,
+angled and perpendicular bays, tight rows with occlusion, moving traffic, wide and tall vehicles;
+the development set is for tuning, the validation set only for reporting) are generated once under
+``--root`` and autolabelled with the default configuration (or ``--config`` / ``--set``): per
+sequence the ``--targets`` middle target frames, in one ``vsrd-mi autolabel`` run each (so the
+consensus of parked cars fuses over them), ``--jobs`` sequences at a time. Every labelled frame is
+then evaluated (:mod:`vsrd_mi.evaluate`, the authors' mask protocol) and all sequences are pooled:
+
+* mean 3D IoU of matched parked and moving cars, AP_3D / AOS, the share of cars without a box;
+* heading accuracy of parked cars, the yaw error modulo 180 degrees of angled ones;
+* signed length / width / height bias per vehicle class;
+* by distance and by occlusion;
+
+and checked against issue 33's bounds (:data:`BOUNDS`). Writes ``benchmarks/<set>.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import numpy as np
+
+from ..data.kitti360 import Sequence, sequence_name
+from ..data.selection import select_targets
+from ..evaluate.sequence import EvalConfig, evaluate_frames, sequence_frames
+from ..synth.suites import select, suite, write_suite
+
+#: Issue 33's bounds, each ``(result path, comparison, value)``; sizes are relative biases.
+BOUNDS = {
+    "parked mean 3D IoU >= 0.78": ("parked_iou", ">=", 0.78),
+    "moving mean 3D IoU >= 0.72": ("moving_iou", ">=", 0.72),
+    "parked heading right >= 90 %": ("parked_heading_accuracy", ">=", 0.90),
+    "angled parked yaw error mod 180 <= 5 deg": ("angled_yaw_error_deg", "<=", 5.0),
+    "|length bias| <= 5 % per class": ("worst_length_bias", "<=", 0.05),
+    "|height bias| <= 5 % per class": ("worst_height_bias", "<=", 0.05),
+    "cars without a box <= 5 %": ("missed_share", "<=", 0.05),
+}
+
+
+def middle_targets(root: Path, sequence: int, count: int) -> list[int]:
+    """The ``count`` middle target frames of a sequence (all when ``count`` is 0 or more)."""
+    targets = [s.target for s in select_targets(Sequence(root, sequence))]
+    if count <= 0 or count >= len(targets):
+        return targets
+    lo = (len(targets) - count) // 2
+    return targets[lo:lo + count]
+
+
+def autolabel(root: Path, sequence: int, targets: list[int], out: Path, extra: list[str]) -> dict:
+    """``vsrd-mi autolabel`` of ``targets`` (a frame range) in a fresh process; its wall time."""
+    cmd = [sys.executable, "-m", "vsrd_mi", "autolabel", str(root), "--sequence", str(sequence), "--out", str(out),
+           "--frames", f"{targets[0]}-{targets[-1]}", "--no-progress", *extra]
+    start = time.perf_counter()
+    proc = subprocess.run(cmd, capture_output=True, text=True)
+    if proc.returncode != 0:
+        raise RuntimeError(f"autolabel of sequence {sequence} failed ({proc.returncode}): {proc.stderr[-2000:]}")
+    return {"sequence": sequence, "targets": targets, "wall_seconds": time.perf_counter() - start}
+
+
+def target_seconds(out: Path, sequence: int) -> list[float]:
+    """Seconds of every target's optimisation run, from its ``boxes/*.json``."""
+    folder = out / sequence_name(sequence) / "boxes"
+    return [float(json.loads(p.read_text())["seconds"]) for p in sorted(folder.glob("*.json"))]
+
+
+def headline(result: dict) -> dict:
+    """The figures :data:`BOUNDS` checks, from a pooled :func:`evaluate_frames` result."""
+    pairs, breakdown = result["pairs"], result["breakdown"]
+    parking = breakdown.get("by_parking") or {}
+    angled = parking.get("angled") or {}
+    classes = breakdown.get("by_class") or {}
+
+    def worst(extent: str) -> float | None:
+        values = [abs(c["size_bias"][extent]["mean_rel"]) for c in classes.values()
+                  if c and c.get("size_bias")]
+        return max(values) if values else None
+
+    return {"parked_iou": pairs["static"]["mean_iou_3d"], "moving_iou": pairs["dynamic"]["mean_iou_3d"],
+            "parked_heading_accuracy": pairs["static"]["heading_accuracy"],
+            "angled_yaw_error_deg": angled.get("yaw_error_deg"),
+            "worst_length_bias": worst("length"), "worst_height_bias": worst("height"),
+            "missed_share": pairs["all"]["missed_share"]}
+
+
+def check(figures: dict) -> dict[str, bool | None]:
+    """Each bound of :data:`BOUNDS` met (None where the figure is missing)."""
+    out = {}
+    for name, (key, op, bound) in BOUNDS.items():
+        value = figures.get(key)
+        out[name] = None if value is None else (value >= bound if op == ">=" else value <= bound)
+    return out
+
+
+def run(set_name: str, root: Path, work: Path, targets: int, jobs: int, extra: list[str]) -> dict:
+    """Generate (if needed), autolabel and evaluate a set (see the module docstring)."""
+    write_suite(root, set_name)
+    members = select(suite(set_name), None)
+    plans = [(m.sequence, middle_targets(root, m.sequence, targets)) for m in members]
+    with ThreadPoolExecutor(max_workers=max(1, jobs)) as pool:
+        runs = list(pool.map(lambda p: autolabel(root, p[0], p[1], work, extra), plans))
+    config = EvalConfig()
+    frames, per_sequence = [], {}
+    for member, r in zip(members, runs):
+        seq_frames, info = sequence_frames(work, root, member.sequence, None, config)
+        frames += seq_frames
+        ev = evaluate_frames(seq_frames, config)
+        per_sequence[sequence_name(member.sequence)] = {
+            "preset": member.scenario.name, "seed": member.seed, **r, "frames": info["frames"],
+            "target_seconds": target_seconds(work, member.sequence), "figures": headline(ev)}
+    pooled = evaluate_frames(frames, config)
+    figures = headline(pooled)
+    seconds = [s for v in per_sequence.values() for s in v["target_seconds"]]
+    return {"set": set_name, "root": str(root), "targets_per_sequence": targets, "autolabel_args": extra,
+            "figures": figures, "bounds": check(figures), "per_sequence": per_sequence,
+            "seconds_per_target": {"mean": float(np.mean(seconds)), "median": float(np.median(seconds))},
+            "pooled": pooled, "machine": {"cpus": os.cpu_count()}}
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser("validation", help="accuracy on the synthetic validation (or development) set",
+                              description=__doc__.split("\n\n")[0])
+    p.add_argument("--set", dest="set_name", choices=("validation", "development"), default="validation")
+    p.add_argument("--root", type=Path, help="where the set is generated (default runs/bench-data/<set>)")
+    p.add_argument("--work", type=Path, help="autolabel output (default runs/bench-<set>)")
+    p.add_argument("--targets", type=int, default=4, help="middle target frames per sequence (0 = all)")
+    p.add_argument("--jobs", type=int, default=1, help="sequences autolabelled at the same time")
+    p.add_argument("--config", default="default", help="autolabel preset")
+    p.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
+                   help="autolabel --set override (repeatable)")
+    p.add_argument("--json", type=Path, help="result file (default benchmarks/<set>.json)")
+    p.set_defaults(func=main)
+
+
+def main(args: argparse.Namespace) -> int:
+    root = args.root or Path("runs/bench-data") / args.set_name
+    work = args.work or Path(f"runs/bench-{args.set_name}")
+    extra = ["--config", args.config] + [a for o in args.option for a in ("--set", o)]
+    result = run(args.set_name, root, work, args.targets, args.jobs, extra)
+    path = args.json or Path("benchmarks") / f"{args.set_name}.json"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(result, indent=1) + "\n")
+    for name, ok in result["bounds"].items():
+        key = BOUNDS[name][0]
+        print(f"{'PASS' if ok else 'FAIL' if ok is not None else '  - '}  {name:42s} {result['figures'][key]}")
+    print(f"seconds per target: mean {result['seconds_per_target']['mean']:.1f}; wrote {path}")
+    return 0
