@@ -24,10 +24,12 @@ def test_middle_targets():
 
 
 def test_data_specs_are_checked(tmp_path):
-    assert bench.data_root("bundled", tmp_path) == REPO / "scenes" / "kitti360-synth"
+    assert bench.data_sequences("bundled", tmp_path) == [("bundled", REPO / "scenes" / "kitti360-synth", 0)]
     for bad in ("synth:1,2", "synth:a,b,c", "kitti:1,2,3", "bundle"):
-        with pytest.raises(ValueError, match="expected 'bundled' or 'synth"):
-            bench.data_root(bad, tmp_path)
+        with pytest.raises(ValueError, match="expected 'suite:SET"):
+            bench.data_sequences(bad, tmp_path)
+    with pytest.raises(ValueError, match="expected 'suite:validation'"):
+        bench.data_sequences("suite:testing", tmp_path)
 
 
 def test_differing_label_files_are_listed(tmp_path):
@@ -106,5 +108,6 @@ def test_bench_runs_both_sides_and_reports(tmp_path):
 def test_register_adds_the_command():
     parser = argparse.ArgumentParser()
     bench.register(parser.add_subparsers())
-    args = parser.parse_args(["autolabel", "--rev", "ed219dd", "--cold", "--sequence-frames", "200"])
-    assert (args.rev, args.cold, args.sequence_frames, args.rounds) == ("ed219dd", True, 200, 2)
+    args = parser.parse_args(["autolabel", "--rev", "ed219dd", "--cold", "--sequence"])
+    assert (args.rev, args.cold, args.sequence, args.rounds) == ("ed219dd", True, bench.DEFAULT_SEQUENCE, 2)
+    assert parser.parse_args(["autolabel"]).sequence is None

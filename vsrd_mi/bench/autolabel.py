@@ -1,5 +1,5 @@
 """Per-target speed and accuracy of the autolabeling, side by side with another git revision:
-``vsrd-mi bench autolabel [--rev REV] [--cold] [--sequence-frames 200]``.
+``vsrd-mi bench autolabel [--rev REV] [--cold] [--sequence [DATA]]``.
 
 Every measurement runs in a fresh process (:mod:`vsrd_mi.bench.autolabel_worker`) with
 ``PYTHONPATH`` pointing at the code being measured: this checkout, and with ``--rev`` an export of
@@ -16,17 +16,20 @@ overrides). The runs are:
    sides per target and over all targets;
 3. with ``--cold``, the first target once per side with an empty kernel cache (``DRJIT_CACHE_DIR``
    set to a new directory);
-4. with ``--sequence-frames N``, a synthetic sequence of N frames labelled end to end by
-   ``vsrd-mi autolabel`` per side: wall time and labelled frames per hour.
+4. with ``--sequence DATA`` (default ``suite:validation:long``, 200 frames), that sequence labelled
+   end to end by ``vsrd-mi autolabel`` per side: wall time and labelled frames per hour.
 
-The labels of every timed round are evaluated with this checkout's evaluator
-(:func:`vsrd_mi.evaluate.evaluate_sequence`, the target frames): mean 3D IoU of parked and
-moving cars, and the other matched-pair and AP figures it reports. Two rounds of one side giving
+The labels of the last timed round are evaluated with this checkout's evaluator
+(:mod:`vsrd_mi.evaluate`): mean 3D IoU of parked and moving cars, heading accuracy, angled cars'
+yaw error, size bias, the share of cars without a box, AP and AOS. Two rounds of one side giving
 different label files are reported (``deterministic``).
 
-Data (``--data``): ``bundled`` (``scenes/kitti360-synth``) and ``synth:STATIC,DYNAMIC,SEED[,FRAMES]``
-(generated once by :func:`vsrd_mi.synth.generate_sequence` and cached under ``--data-dir``).
-Results: ``benchmarks/autolabel.json`` (``--out``) and, with ``--sequence-frames``,
+Data (``--data``): ``suite:SET[:PRESET,...][@ROOT]`` (the sequences of a synthetic set of
+:mod:`vsrd_mi.synth.suites`, written under ``ROOT``, default ``--data-dir/SET``, unless there),
+``bundled`` (``scenes/kitti360-synth``) and ``synth:STATIC,DYNAMIC,SEED[,FRAMES]`` (one
+:func:`vsrd_mi.synth.generate_sequence` sequence, cached under ``--data-dir``). Every labelled
+frame is evaluated, pooled over the sequences, with the figures of ``vsrd-mi bench validation``.
+Results: ``benchmarks/autolabel.json`` (``--out``) and, with ``--sequence``,
 ``benchmarks/autolabel_sequence.json``.
 """
 
@@ -47,18 +50,22 @@ from pathlib import Path
 
 import numpy as np
 
-from ..data.kitti360 import Sequence
+from ..data.kitti360 import Sequence, sequence_name
 from ..data.selection import select_targets
-from ..evaluate.sequence import evaluate_sequence
+from ..evaluate.sequence import EvalConfig, evaluate_frames, sequence_frames
 from ..synth import generate_sequence
+from ..synth.suites import select, suite, write_suite
 from . import autolabel_worker
+from .validation import headline
 
 #: Root of this checkout (the code measured as ``this``).
 REPO_ROOT = Path(__file__).resolve().parents[2]
 #: The bundled sequence (``--data bundled``).
 BUNDLED_ROOT = REPO_ROOT / "scenes" / "kitti360-synth"
-#: Data of a default run: the bundled scene and a parked-heavy and a moving-heavy sequence.
-DEFAULT_DATA = ("bundled", "synth:6,2,4411", "synth:3,4,4412")
+#: Data of a default run: the validation set's six sequences.
+DEFAULT_DATA = ("suite:validation",)
+#: The whole-sequence figure's sequence: the validation set's 200-frame street.
+DEFAULT_SEQUENCE = "suite:validation:long"
 #: Frames of a ``synth:`` sequence when its spec does not say.
 DEFAULT_SYNTH_FRAMES = 30
 #: Name of the side measuring this checkout.
@@ -103,14 +110,27 @@ def export_revision(rev: str, dest: Path) -> Path:
     return dest
 
 
-def data_root(spec: str, data_dir: Path) -> Path:
-    """Root of a ``--data`` item (a ``synth:`` sequence is generated unless a finished copy is cached)."""
+def data_sequences(spec: str, data_dir: Path) -> list[tuple[str, Path, int]]:
+    """``(name, root, sequence number)`` of each sequence of a ``--data`` item (a ``suite:`` set
+    or a ``synth:`` sequence is generated unless a finished copy is there)."""
     if spec == "bundled":
-        return BUNDLED_ROOT
+        return [(spec, BUNDLED_ROOT, 0)]
     kind, _, args = spec.partition(":")
+    if kind == "suite":
+        args, _, where = args.partition("@")
+        set_name, _, presets = args.partition(":")
+        if set_name not in ("validation", "development"):
+            raise ValueError(f"--data {spec!r}: expected 'suite:validation' or 'suite:development'[:PRESET,...][@ROOT]")
+        root = Path(where) if where else data_dir / set_name
+        members = []
+        for preset in presets.split(",") if presets else [None]:
+            write_suite(root, set_name, only=preset)
+            members += select(suite(set_name), preset)
+        return [(f"{set_name}/{m.scenario.name}", root, m.sequence) for m in members]
     values = args.split(",")
     if kind != "synth" or len(values) not in (3, 4) or not all(v.strip().isdigit() for v in values):
-        raise ValueError(f"--data {spec!r}: expected 'bundled' or 'synth:STATIC,DYNAMIC,SEED[,FRAMES]'")
+        raise ValueError(f"--data {spec!r}: expected 'suite:SET[:PRESET,...][@ROOT]', 'bundled' or "
+                         "'synth:STATIC,DYNAMIC,SEED[,FRAMES]'")
     n_static, n_dynamic, seed, frames = (list(map(int, values)) + [DEFAULT_SYNTH_FRAMES])[:4]
     root = data_dir / f"synth-s{n_static}-d{n_dynamic}-seed{seed}-f{frames}"
     if not (root / "DONE").is_file():
@@ -119,7 +139,7 @@ def data_root(spec: str, data_dir: Path) -> Path:
         start = time.perf_counter()
         generate_sequence(root, seq=0, frames=frames, n_static=n_static, n_dynamic=n_dynamic, seed=seed)
         (root / "DONE").write_text(f"{time.perf_counter() - start:.1f} s\n")
-    return root
+    return [(spec, root, 0)]
 
 
 def middle(values: list[int], count: int) -> list[int]:
@@ -134,10 +154,9 @@ def bench_sequences(data: list[str], data_dir: Path, max_targets: int) -> list[B
     """The benchmark's sequences with their target frames (the selection's, thinned to the middle)."""
     out = []
     for spec in data:
-        root = data_root(spec, data_dir)
-        seq = Sequence(root, 0)
-        targets = middle([s.target for s in select_targets(seq)], max_targets)
-        out.append(BenchSequence(spec, str(root), seq.name, tuple(targets)))
+        for name, root, number in data_sequences(spec, data_dir):
+            targets = middle([s.target for s in select_targets(Sequence(root, number))], max_targets)
+            out.append(BenchSequence(name, str(root), sequence_name(number), tuple(targets)))
     return out
 
 
@@ -160,7 +179,8 @@ def target_job(sequences: list[BenchSequence], out: Path, args: argparse.Namespa
     items = []
     for k, s in enumerate(sequences):
         targets = list(s.targets[:1]) if first_only else list(s.targets)
-        items.append({"root": s.root, "sequence": s.sequence, "targets": targets, "out_dir": str(out / f"data{k}")})
+        items.append({"name": s.name, "root": s.root, "sequence": s.sequence, "targets": targets,
+                      "out_dir": str(out / f"data{k}")})
         if first_only:
             break
     return {"preset": args.config, "overrides": list(args.set or []), "seed": args.seed,
@@ -177,22 +197,17 @@ def labels_identical(a: Path, b: Path) -> list[str]:
 
 
 def evaluation(sequences: list[BenchSequence], out: Path) -> dict:
-    """This checkout's evaluation of one run's labels: per sequence and pooled over sequences."""
-    per, pooled = {}, {}
+    """This checkout's evaluation of one run's labels: every labelled frame, per sequence and
+    pooled over the sequences, with ``vsrd-mi bench validation``'s headline figures."""
+    config = EvalConfig()
+    frames, per = [], {}
     for k, s in enumerate(sequences):
-        ev = evaluate_sequence(out / f"data{k}", s.root, s.sequence, frames=s.targets)
-        per[s.name] = {key: value for key, value in ev.items() if key not in ("frames", "prediction_dir")}
-        for group, stats in ev["pairs"].items():
-            acc = pooled.setdefault(group, {"n_gt": 0, "n_matched": 0, "iou_3d_sum": 0.0, "iou_bev_sum": 0.0})
-            acc["n_gt"] += stats["n_gt"]
-            acc["n_matched"] += stats["n_matched"]
-            acc["iou_3d_sum"] += (stats["mean_iou_3d"] or 0.0) * stats["n_matched"]
-            acc["iou_bev_sum"] += (stats["mean_iou_bev"] or 0.0) * stats["n_matched"]
-    for acc in pooled.values():
-        n = acc["n_matched"]
-        acc["mean_iou_3d"] = acc.pop("iou_3d_sum") / n if n else None
-        acc["mean_iou_bev"] = acc.pop("iou_bev_sum") / n if n else None
-    return {"pooled": pooled, "sequences": per}
+        seq_frames, _ = sequence_frames(out / f"data{k}", s.root, s.sequence, None, config)
+        frames += seq_frames
+        per[s.name] = headline(evaluate_frames(seq_frames, config))
+    pooled = evaluate_frames(frames, config)
+    return {"figures": headline(pooled), "pairs": pooled["pairs"], "ap": pooled["ap"],
+            "labelled_frames": len(frames), "sequences": per}
 
 
 def per_target_rows(runs: list[dict]) -> list[dict]:
@@ -201,8 +216,9 @@ def per_target_rows(runs: list[dict]) -> list[dict]:
     for run in runs:
         for s in run["sequences"]:
             for t in s["targets"]:
-                row = rows.setdefault((s["sequence"], t["frame"]), {
-                    "sequence": s["sequence"], "frame": t["frame"], "seconds": [], "phases": {}, "status": []})
+                row = rows.setdefault((s["name"], t["frame"]), {
+                    "data": s["name"], "sequence": s["sequence"], "frame": t["frame"], "seconds": [], "phases": {},
+                    "status": []})
                 row["seconds"].append(t["seconds"])
                 row["status"].append(t["status"])
                 for k, v in t["phases"].items():
@@ -246,16 +262,17 @@ def side_summary(rows: list[dict], runs: list[dict], warm: dict, ev: dict) -> di
         "steps_per_second": float(sum(steps) / sum(optimise)) if steps and sum(optimise) > 0 else None,
         "peak_rss_mib": max(run["peak_rss_mib"] for run in runs),
         "kernels": kernel_summary(warm),
-        "mean_iou_3d_parked": ev["pooled"].get("static", {}).get("mean_iou_3d"),
-        "mean_iou_3d_moving": ev["pooled"].get("dynamic", {}).get("mean_iou_3d"),
-        "mean_iou_3d_all": ev["pooled"].get("all", {}).get("mean_iou_3d"),
+        "mean_iou_3d_parked": ev["figures"]["parked_iou"],
+        "mean_iou_3d_moving": ev["figures"]["moving_iou"],
+        "mean_iou_3d_all": ev["pairs"]["all"]["mean_iou_3d"],
+        "figures": ev["figures"],
     }
 
 
 def comparison(rows: dict[str, list[dict]], summaries: dict[str, dict], base: str) -> dict:
     """``base`` against this checkout: time ratios per target and over all, IoU differences."""
-    mine = {(r["sequence"], r["frame"]): r["mean_seconds"] for r in rows[THIS]}
-    theirs = {(r["sequence"], r["frame"]): r["mean_seconds"] for r in rows[base]}
+    mine = {(r["data"], r["frame"]): r["mean_seconds"] for r in rows[THIS]}
+    theirs = {(r["data"], r["frame"]): r["mean_seconds"] for r in rows[base]}
     common = sorted(set(mine) & set(theirs))
     ratios = [theirs[k] / mine[k] for k in common]
     a, b = summaries[THIS], summaries[base]
@@ -272,12 +289,12 @@ def comparison(rows: dict[str, list[dict]], summaries: dict[str, dict], base: st
     }
 
 
-def sequence_figure(sides: list[Side], frames: int, args: argparse.Namespace, work: Path) -> dict:
-    """Label a ``frames``-frame synthetic sequence end to end with ``vsrd-mi autolabel`` per side."""
-    root = data_root(f"synth:{args.sequence_static},{args.sequence_dynamic},{args.sequence_seed},{frames}",
-                     Path(args.data_dir))
-    seq = Sequence(root, 0)
-    out = {"root": str(root), "frames": frames, "targets": len(select_targets(seq)), "sides": {}}
+def sequence_figure(sides: list[Side], spec: str, args: argparse.Namespace, work: Path) -> dict:
+    """Label the sequence of ``spec`` end to end with ``vsrd-mi autolabel`` per side."""
+    ((name, root, number),) = data_sequences(spec, Path(args.data_dir).resolve())
+    seq = Sequence(root, number)
+    out = {"data": spec, "root": str(root), "sequence": seq.name, "frames": len(seq.frames),
+           "targets": len(select_targets(seq)), "sides": {}}
     for side in sides:
         dest = work / "sequence" / side.name
         if dest.exists():
@@ -286,11 +303,10 @@ def sequence_figure(sides: list[Side], frames: int, args: argparse.Namespace, wo
         cli += [a for kv in (args.set or []) for a in ("--set", kv)]
         print(f"[sequence] {side.name}: vsrd-mi {' '.join(cli)}", flush=True)
         result = run_worker(side, {"cli": cli}, dest.parent / f"{side.name}-job")
-        labelled = len(list((dest / seq.name / "labels").glob("*.txt")))
-        ev = evaluate_sequence(dest, root, seq.name)
-        out["sides"][side.name] = {**result, "labelled_frames": labelled,
-                                   "labelled_frames_per_hour": 3600.0 * labelled / result["seconds"],
-                                   "pairs": ev["pairs"]}
+        frames, _ = sequence_frames(dest, root, seq.name, None, EvalConfig())
+        out["sides"][side.name] = {**result, "labelled_frames": len(frames),
+                                   "labelled_frames_per_hour": 3600.0 * len(frames) / result["seconds"],
+                                   "figures": headline(evaluate_frames(frames, EvalConfig()))}
     return out
 
 
@@ -348,8 +364,8 @@ def run(args: argparse.Namespace) -> int:
         out_dir.mkdir(parents=True, exist_ok=True)
         (out_dir / "autolabel.json").write_text(json.dumps(result, indent=1))
         print(report(result), flush=True)
-        if args.sequence_frames:
-            seq_result = {"meta": _meta(args, sequences, 0.0), **sequence_figure(sides, args.sequence_frames, args, work)}
+        if args.sequence:
+            seq_result = {"meta": _meta(args, sequences, 0.0), **sequence_figure(sides, args.sequence, args, work)}
             (out_dir / "autolabel_sequence.json").write_text(json.dumps(seq_result, indent=1))
             for name, s in seq_result["sides"].items():
                 print(f"[sequence] {name}: {s['seconds']:.0f} s, {s['labelled_frames']} labelled frames, "
@@ -399,15 +415,14 @@ def register(bench_subparsers) -> None:
         description=__doc__.split("\n\n")[0])
     p.add_argument("--rev", help="git revision run side by side (e.g. ed219dd)")
     p.add_argument("--data", nargs="+", default=list(DEFAULT_DATA),
-                   help="sequences: 'bundled' and/or 'synth:STATIC,DYNAMIC,SEED[,FRAMES]'")
-    p.add_argument("--max-targets", type=int, default=3, help="target frames per sequence, the middle ones (0 = all)")
+                   help="sequences: 'suite:validation|development[:PRESET,...][@ROOT]', 'bundled', "
+                        "'synth:STATIC,DYNAMIC,SEED[,FRAMES]'")
+    p.add_argument("--max-targets", type=int, default=2, help="target frames per sequence, the middle ones (0 = all)")
     p.add_argument("--rounds", type=int, default=2, help="timed rounds per side (alternating)")
     p.add_argument("--cold", action="store_true", help="also time the first target with an empty kernel cache")
-    p.add_argument("--sequence-frames", type=int, default=0,
-                   help="also label a synthetic sequence of this many frames end to end (e.g. 200)")
-    p.add_argument("--sequence-static", type=int, default=8, help="parked cars of that sequence")
-    p.add_argument("--sequence-dynamic", type=int, default=3, help="moving cars of that sequence")
-    p.add_argument("--sequence-seed", type=int, default=4420, help="seed of that sequence")
+    p.add_argument("--sequence", nargs="?", const=DEFAULT_SEQUENCE, metavar="DATA",
+                   help=f"also label one sequence end to end with vsrd-mi autolabel (default {DEFAULT_SEQUENCE}: "
+                        "200 frames)")
     p.add_argument("--config", default="default", help="preset of each side's own configuration")
     p.add_argument("--set", action="append", metavar="KEY=VALUE", help="override of both sides' configuration")
     p.add_argument("--seed", type=int, default=0, help="seed of every target")

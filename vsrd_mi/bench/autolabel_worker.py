@@ -199,7 +199,7 @@ def run_job(job: dict) -> dict:
             consensus_error = None
         except Exception as exc:  # recorded; the targets' own labels are scored
             consensus_error = f"{type(exc).__name__}: {exc}"
-        sequences.append({"root": item["root"], "sequence": seq.name, "targets": rows,
+        sequences.append({"name": item["name"], "root": item["root"], "sequence": seq.name, "targets": rows,
                           "consensus_seconds": time.perf_counter() - t, "consensus_error": consensus_error})
     return {"package": vsrd_mi.__file__, "import_seconds": import_seconds, "sequences": sequences,
             "config": cfg.to_dict(), "peak_rss_mib": peak_rss_mib()}
