@@ -25,7 +25,8 @@ yaw error, size bias, the share of cars without a box, AP and AOS. Two rounds of
 different label files are reported (``deterministic``).
 
 Data (``--data``): ``suite:SET[:PRESET,...][@ROOT]`` (the sequences of a synthetic set of
-:mod:`vsrd_mi.synth.suites`, written under ``ROOT``, default ``--data-dir/SET``, unless there),
+:mod:`vsrd_mi.synth.suites`: read from ``ROOT`` as they are there, or written under
+``--data-dir/SET`` unless there with the same fingerprint),
 ``bundled`` (``scenes/kitti360-synth``) and ``synth:STATIC,DYNAMIC,SEED[,FRAMES]`` (one
 :func:`vsrd_mi.synth.generate_sequence` sequence, cached under ``--data-dir``). Every labelled
 frame is evaluated, pooled over the sequences, with the figures of ``vsrd-mi bench validation``.
@@ -54,7 +55,8 @@ from ..data.kitti360 import Sequence, sequence_name
 from ..data.selection import select_targets
 from ..evaluate.sequence import EvalConfig, evaluate_frames, sequence_frames
 from ..synth import generate_sequence
-from ..synth.suites import select, suite, write_suite
+from ..errors import DataError
+from ..synth.suites import MANIFEST, read_manifest, select, suite, write_suite
 from . import autolabel_worker
 from .validation import headline
 
@@ -121,11 +123,19 @@ def data_sequences(spec: str, data_dir: Path) -> list[tuple[str, Path, int]]:
         set_name, _, presets = args.partition(":")
         if set_name not in ("validation", "development"):
             raise ValueError(f"--data {spec!r}: expected 'suite:validation' or 'suite:development'[:PRESET,...][@ROOT]")
-        root = Path(where) if where else data_dir / set_name
-        members = []
-        for preset in presets.split(",") if presets else [None]:
-            write_suite(root, set_name, only=preset)
-            members += select(suite(set_name), preset)
+        members = [m for preset in (presets.split(",") if presets else [None])
+                   for m in select(suite(set_name), preset)]
+        if where:  # a set written elsewhere is only read: its sequences must be there
+            root = Path(where)
+            missing = [m.scenario.name for m in members
+                       if sequence_name(m.sequence) not in read_manifest(root)["sequences"]]
+            if missing:
+                raise DataError(root / MANIFEST, f"no sequence of the preset(s) {missing} (the benchmark does "
+                                                 "not write into a given root)")
+        else:
+            root = data_dir / set_name
+            for preset in presets.split(",") if presets else [None]:
+                write_suite(root, set_name, only=preset)
         return [(f"{set_name}/{m.scenario.name}", root, m.sequence) for m in members]
     values = args.split(",")
     if kind != "synth" or len(values) not in (3, 4) or not all(v.strip().isdigit() for v in values):
