@@ -12,6 +12,7 @@ from pathlib import Path
 import pytest
 
 from vsrd_mi.bench import autolabel as bench
+from vsrd_mi.errors import DataError
 from vsrd_mi.bench import autolabel_worker as worker
 
 REPO = Path(__file__).resolve().parents[1]
@@ -30,6 +31,10 @@ def test_data_specs_are_checked(tmp_path):
             bench.data_sequences(bad, tmp_path)
     with pytest.raises(ValueError, match="expected 'suite:validation'"):
         bench.data_sequences("suite:testing", tmp_path)
+    # a given root is only read: nothing is generated into it
+    with pytest.raises(DataError, match="does not write into a given root"):
+        bench.data_sequences(f"suite:validation:long@{tmp_path}", tmp_path)
+    assert list(tmp_path.iterdir()) == []
 
 
 def test_differing_label_files_are_listed(tmp_path):
