@@ -259,6 +259,12 @@ class HeadingConfig:
     min_evidence: float = 0.01
     #: Frames whose mask has fewer pixels than this take no part (too small to show a shape).
     min_mask_pixels: int = 200
+    #: Look at the lamps' colour too (red at the rear; :func:`vsrd_mi.optimise.heading.lamp_evidence`).
+    lamps: bool = True
+    #: The lamps decide when at least this many frames showed a lamped end ...
+    min_lamp_views: int = 2
+    #: ... and the lamped rears outnumber the lamped fronts (or the reverse) by this share of them.
+    min_lamp_evidence: float = 0.5
     #: Which way parked cars are assumed to face when the silhouettes cannot tell: ``"none"`` keeps
     #: the optimiser's yaw; ``"right-hand"`` (traffic drives on the right, the ego along +z of the
     #: optimisation frame) faces a car on the right (x > 0) along +z and one on the left along -z;
