@@ -440,7 +440,7 @@ def test_batched_residual_matches_numpy_per_instance():
 
 
 def test_bucket_width():
-    from vsrd_plugins.sdf import MIN_BUCKET, bucket_width
+    from vsrd_plugins.sdf.mlp import MIN_BUCKET, bucket_width
     assert bucket_width(1) == MIN_BUCKET
     assert bucket_width(MIN_BUCKET + 1) == 2 * MIN_BUCKET
     assert bucket_width(4096) == 4096 and bucket_width(4097) == 8192
@@ -455,7 +455,7 @@ def test_residual_fused_forward_matches_tensor_mode():
     weights = field.generate_weights()
     rng = np.random.default_rng(5)
     points = mi.Vector3f(*[mi.Float(rng.uniform(-3.0, 3.0, 777).astype(np.float32)) for _ in range(3)])
-    tensor = np.array(field._evaluate_padded(weights, 1, points))
+    tensor = np.array(field.evaluate_tensor(weights, 1, points))
     with dr.suspend_grad():
         fused = np.array(field.evaluate_grouped(weights, [1], [points])[0])
     assert tensor.min() > 0.0 and np.ptp(tensor) > 1e-3  # a field that varies

@@ -19,8 +19,20 @@ import drjit as dr
 import mitsuba as mi
 
 from vsrd_plugins.sdf import instance_properties
-from vsrd_plugins.silhouette import (KINK_MINIMA, GapPeak, PairScan, Slot, VSRDSilhouetteIntegrator,
-                                     golden_minimum, illinois_root)
+from vsrd_plugins.common import golden_minimum, illinois_root
+from vsrd_plugins.silhouette import VSRDSilhouetteIntegrator
+from vsrd_plugins.silhouette import adaptive as adaptive_module
+from vsrd_plugins.silhouette import bands as bands_module
+from vsrd_plugins.silhouette import residual_search
+from vsrd_plugins.silhouette.bands import adaptive_bands
+from vsrd_plugins.silhouette.dense import dense_positions
+from vsrd_plugins.silhouette.extrema import snapped_positions, snapped_slots
+from vsrd_plugins.silhouette.integral import GAUSS_QUANTILES, accrual_quantiles
+from vsrd_plugins.silhouette.layout import adaptive_groups, sub_bands
+from vsrd_plugins.silhouette.residual_search import (ChordGrid, PairScan, kink_minima, residual_lattice,
+                                                     residual_peaks)
+from vsrd_plugins.silhouette.settings import halves
+from vsrd_plugins.silhouette.slots import KINK_MINIMA, GapPeak, Slot, sub_sample
 from vsrd_mi.bench.integrator import BenchConfig, central_differences, fd_steps, new_kernels, reference_grid
 
 BOX_KEYS = ("box_dims", "box_centre", "box_yaw", "box_velocity")
@@ -42,6 +54,8 @@ FULL_MAX_ABS = 0.01  # the issue's bound (latest run: max 0.0087, 12 boxes at s 
 FULL_P99_ABS = 0.005  # latest run: p99 at most 0.0034
 #: rays of the slow test's central differences of the converged integral
 FD_RAYS = 256
+#: scan points per moved sample (the default ``residual_tail_scan``)
+SCAN = 3
 #: AD vs central differences (float32 labels; see test_gradients_match_finite_differences)
 FD_TOLERANCE = 0.25
 FD_COSINE_MIN = 0.98
@@ -184,9 +198,8 @@ def np_accrual_quantile(s: float, fa: float, fb: float, q: float, n: int = 200_0
 def test_accrual_quantiles_match_brute_force(s, fa, fb):
     """The two label positions of an interval are where it has accrued the Gauss-Legendre
     fractions of its opacity; in the sharp limit both sit at the surface crossing."""
-    from vsrd_plugins.silhouette import GAUSS_QUANTILES
     log1ma = mi.Float(float(np.logaddexp(0.0, -s * fa) - np.logaddexp(0.0, -s * fb)))  # log(1 - alpha)
-    thetas = VSRDSilhouetteIntegrator._accrual_quantiles(mi.Float(s), mi.Float(fa), mi.Float(fb), log1ma)
+    thetas = accrual_quantiles(mi.Float(s), mi.Float(fa), mi.Float(fb), log1ma)
     for q, theta in zip(GAUSS_QUANTILES, thetas):
         expected = np_accrual_quantile(s, fa, fb, q)
         assert abs(float(theta[0]) - expected) < 2e-3, (q, float(theta[0]), expected)
@@ -197,9 +210,8 @@ def test_accrual_quantiles_match_brute_force(s, fa, fb):
 
 def test_accrual_quantiles_of_flat_or_rising_intervals_are_uniform():
     """No opacity (``f`` rising) or a flat ``f``: the quantiles of a uniform weight."""
-    from vsrd_plugins.silhouette import GAUSS_QUANTILES
     fa, fb = mi.Float([0.1, 0.3]), mi.Float([0.4, 0.3])
-    thetas = VSRDSilhouetteIntegrator._accrual_quantiles(mi.Float(10.0), fa, fb, mi.Float([0.0, 0.0]))
+    thetas = accrual_quantiles(mi.Float(10.0), fa, fb, mi.Float([0.0, 0.0]))
     for q, theta in zip(GAUSS_QUANTILES, thetas):
         np.testing.assert_allclose(np.array(theta), [q, q], atol=1e-7)
 
@@ -302,14 +314,14 @@ def test_residual_sparse_gradients_keep_the_gradient(monkeypatch):
     assert np.linalg.norm(sparse - full) <= 2e-3 * np.linalg.norm(full)
     # and it does freeze most of the lanes
     frozen = []
-    original = VSRDSilhouetteIntegrator._frozen_lanes
+    original = adaptive_module.frozen_lanes
 
-    def spy(self, *args):
-        mask = original(self, *args)
+    def spy(*args):
+        mask = original(*args)
         frozen.append(float(np.mean(np.array(mask))))
         return mask
 
-    monkeypatch.setattr(VSRDSilhouetteIntegrator, "_frozen_lanes", spy)
+    monkeypatch.setattr(adaptive_module, "frozen_lanes", spy)
     with dr.suspend_grad():
         make(scene, **kw).render_rays(*rays)
     assert frozen and frozen[0] > 0.5, frozen
@@ -317,7 +329,7 @@ def test_residual_sparse_gradients_keep_the_gradient(monkeypatch):
 
 @pytest.mark.parametrize("residual", [False, True])
 def test_band_search_returns_evaluated_arrays(residual):
-    """``_adaptive_bands`` evaluates every per-ray array it returns in one go: the sample
+    """:func:`adaptive_bands` evaluates every per-ray array it returns in one go: the sample
     layout gathers from them per band count, and a gather from an unevaluated array launches a
     kernel of its own (``dr.eval`` does not look inside named tuples: while ``Slot`` was one,
     passing the slots as they were cost 18 more kernels per 1000-ray step, 115 with the residual
@@ -327,8 +339,9 @@ def test_band_search_returns_evaluated_arrays(residual):
     o, d, t = training_rays(rng, scene, 64)
     it = make(scene, residual=residual)
     with dr.suspend_grad():
-        ray_idx, count, slots, slot_inst, slot_hit, isolated, grid = it._adaptive_bands(
-            it.field.decode(), *to_mi(o, d, t))
+        bands = adaptive_bands(it.context(), it.field.decode(), *to_mi(o, d, t))
+    count, slots, slot_inst, slot_hit, isolated, grid = (bands.count, bands.slots, bands.inst, bands.hit,
+                                                         bands.isolated, bands.grid)
     assert slots and (len(slots[0].moved) > 0) == residual and (grid is not None) == residual
     arrays = [count, isolated, *slot_inst, *slot_hit] + [x for sl in slots for x in sl.arrays()]
     if grid is not None:
@@ -350,7 +363,8 @@ def test_residual_tail_samples_do_not_pile_up():
     it = make(scene, sharpness=10.0, temperature=0.1, residual=True)
     total = repeated = 0
     with dr.suspend_grad():
-        for grp in it._adaptive_groups(it.field.decode(), *to_mi(o, d, t)):
+        ctx = it.context()
+        for grp in adaptive_groups(ctx, adaptive_bands(ctx, it.field.decode(), *to_mi(o, d, t))):
             m = grp.m
             samples = np.array(grp.t).reshape(-1, m)
             total += samples.size
@@ -366,19 +380,19 @@ def test_adaptive_samples_are_merged_in_order(residual, s, monkeypatch):
     tails; an isolated ray's entry, centre, the band's end, extra sample, exit, extrema of
     ``B + R``, kink minima and gap peak) come out sorted (up to ties one float32 ulp apart) with
     no unwritten slot, and the gap peaks lie between bands."""
-    from vsrd_plugins import silhouette
-    monkeypatch.setattr(silhouette, "GROUP_COST_SAMPLES", 0)  # isolated groups at any size
     rng = np.random.default_rng(112)
     scene = random_scene(rng, 12, dynamic=True)
     o, d, t = training_rays(rng, scene, 512, max_time=2.0)
-    it = make(scene, sharpness=s, temperature=1.0 / s, residual=residual)
-    kk = it.cfg.band_samples + (it.cfg.residual_tail if residual else 0)
+    it = make(scene, sharpness=s, temperature=1.0 / s, residual=residual,
+              isolated_group_cost=0)  # isolated groups at any size
+    kk = it.settings.band_samples + (it.settings.residual_tail if residual else 0)
     # isolated rays' groups use the smaller layout
-    layouts = {kk + 3, (6 + it.cfg.isolated_extrema + silhouette.KINK_MINIMA) if residual
-               else it.cfg.isolated_band_samples + 3}
+    layouts = {kk + 3, (6 + it.settings.isolated_extrema + KINK_MINIMA) if residual
+               else it.settings.isolated_band_samples + 3}
     groups, isolated = 0, 0
     with dr.suspend_grad():
-        for grp in it._adaptive_groups(it.field.decode(), *to_mi(o, d, t)):
+        ctx = it.context()
+        for grp in adaptive_groups(ctx, adaptive_bands(ctx, it.field.decode(), *to_mi(o, d, t))):
             g, m = len(grp.inst), grp.m
             assert m % g == 0 and m // g in layouts
             isolated += grp.own is not None
@@ -393,15 +407,13 @@ def test_adaptive_samples_are_merged_in_order(residual, s, monkeypatch):
     assert isolated or s < 10.0  # the sharp schedule exercised the isolated layout
 
 
-def test_isolated_rays_are_those_whose_boxes_do_not_interact(monkeypatch):
+def test_isolated_rays_are_those_whose_boxes_do_not_interact():
     """A ray is isolated when the enlarged boxes it meets are disjoint along it: two boxes 10 m
     apart on one line of sight are, two boxes 0.2 m apart side by side are not (their culling
     margins overlap). With the residual field a ray is isolated only where each of its bands
     has at most ``isolated_extrema`` extrema of ``B + R``: the ray through the boxes' centres
     runs along a flat stretch of ``B`` inside each, where the field's wiggles make 5 and 3.
     Band slots go up to the most boxes a ray meets."""
-    from vsrd_plugins import silhouette
-    monkeypatch.setattr(silhouette, "GROUP_COST_SAMPLES", 0)  # two rays pay for a group here
     # two more boxes far to the side that neither ray meets: no slots for them
     centres = np.array([[0.0, 0.0, 10.0], [0.0, 0.0, 20.0], [2.1, 0.0, 20.0], [30.0, 0.0, 20.0],
                         [-30.0, 0.0, 20.0]])
@@ -411,9 +423,11 @@ def test_isolated_rays_are_those_whose_boxes_do_not_interact(monkeypatch):
     rays = to_mi(np.zeros((2, 3)), d / np.linalg.norm(d, axis=1, keepdims=True), np.zeros(2))
     for residual, extrema, expected in ((False, 3, [True, False]), (True, 3, [False, False]),
                                         (True, 5, [True, False])):
-        it = make(scene, sharpness=10.0, temperature=0.1, residual=residual, isolated_extrema=extrema)
+        it = make(scene, sharpness=10.0, temperature=0.1, residual=residual, isolated_extrema=extrema,
+                  isolated_group_cost=0)  # two rays pay for a group here
         with dr.suspend_grad():
-            ray_idx, count, slots, *_, isolated, _ = it._adaptive_bands(it.field.decode(), *rays)
+            bands = adaptive_bands(it.context(), it.field.decode(), *rays)
+        count, slots, isolated = bands.count, bands.slots, bands.isolated
         assert list(np.array(count)) == [2, 3]
         assert len(slots) == 3  # slots up to the most boxes a ray meets, not one per instance
         assert list(np.broadcast_to(np.array(isolated), 2)) == expected
@@ -439,16 +453,15 @@ def test_isolated_band_samples_keep_labels_and_gradients(seed):
 
 
 @pytest.mark.parametrize("seed, n_inst", [(28, 3), (33, 3), (41, 6)])
-def test_isolated_residual_rays_keep_labels_and_gradients(seed, n_inst, monkeypatch):
+def test_isolated_residual_rays_keep_labels_and_gradients(seed, n_inst):
     """With the residual field an isolated ray whose bands have few extrema of ``B + R`` gets
     only its entry, anchors, extrema and kink minima per band (11 samples instead of 31): the
     labels stay within the bound of the reference and within 2e-3 of the full layout's, the
     gradient at cosine >= 0.999 of it, with fewer samples (s = 10; measured: max vs reference
     equal to the full layout's, labels <= 1e-3 apart, cosine >= 0.99999, 77-91 % of the
     samples on these crowded scenes, 44 % on the integrator benchmark's 6 boxes / 16k rays)."""
-    from vsrd_plugins import silhouette
-    monkeypatch.setattr(silhouette, "GROUP_COST_SAMPLES", 0)  # isolated groups at 256 rays
-    variants = {"isolated": {}, "full": {"isolated_rays": False}}
+    variants = {"isolated": {"isolated_group_cost": 0},  # isolated groups at 256 rays
+                "full": {"isolated_rays": False}}
     err = residual_label_error(seed, n_inst, variants, quantile=1.0)
     assert err["isolated"] <= 0.01 and err["isolated"] <= err["full"] + 2e-3, err
     rng = np.random.default_rng(seed)
@@ -466,7 +479,7 @@ def test_isolated_residual_rays_keep_labels_and_gradients(seed, n_inst, monkeypa
 
 def test_isolated_residual_rays_need_a_batch_that_pays_for_them():
     """Isolated rays with the residual field get their own sample groups only where they save
-    more samples than a group costs (:data:`GROUP_COST_SAMPLES`): none on a 64-ray batch, the
+    more samples than a group costs (``isolated_group_cost``): none on a 64-ray batch, the
     same samples as with ``isolated_rays`` off."""
     rng = np.random.default_rng(5)
     scene = random_scene(rng, 3)
@@ -553,7 +566,7 @@ def test_gradients_match_finite_differences(sampling):
     it = make(scene, sampling="dense", **kw)
     if sampling == "dense":  # the dense strategy's own positions, frozen at the base parameters
         with dr.suspend_grad():
-            grid, grid_m = it._dense_positions(it.field.decode(), *rays)
+            grid, grid_m = dense_positions(it.context(), it.field.decode(), *rays)
             dr.eval(grid)
 
     def labels(it):
@@ -637,7 +650,7 @@ def test_kink_gradients_follow_the_converged_integral(monkeypatch):
     rays = to_mi(*training_rays(rng, scene, n_rays, max_time=2.0))
     weights = [mi.Float(rng.normal(size=n_rays).astype(np.float32)) for _ in range(3)]
     fd = converged_fd_gradient(scene, rays, weights, s, residual=True)
-    minima = VSRDSilhouetteIntegrator._kink_minima
+    minima = residual_search.kink_minima
 
     def one_sided(*args, **kwargs):
         return [(t, f, dr.full(mi.Float, -1.0, dr.width(t))) for t, f, _ in minima(*args, **kwargs)]
@@ -645,7 +658,7 @@ def test_kink_gradients_follow_the_converged_integral(monkeypatch):
     cos = {}
     for kinks in ("envelope", "one-sided"):
         if kinks == "one-sided":
-            monkeypatch.setattr(VSRDSilhouetteIntegrator, "_kink_minima", staticmethod(one_sided))
+            monkeypatch.setattr(bands_module, "kink_minima", one_sided)
         it = make(scene, sharpness=s, temperature=1.0 / s, residual=True)
         cos[kinks] = cosine(labels_and_grads(it, lambda it: it.render_rays(*rays), weights)[1], fd)
     print(f"cos vs converged FD: {cos}")
@@ -768,7 +781,6 @@ def test_chord_grid_interpolates_the_residual():
     exactly between them (Catmull-Rom), keeps the box SDF exact and adds the residual only
     where ``B <= reach``; checked against the closed forms."""
     from vsrd_plugins.sdf import box_sdf_local
-    from vsrd_plugins.silhouette import ChordGrid
     rng = np.random.default_rng(5)
     starts, lengths, counts = np.array([2.0, 7.5]), np.array([3.0, 1.2]), np.array([9, 4])
     first = np.concatenate([[0], np.cumsum(counts)[:-1]])
@@ -839,7 +851,6 @@ def test_residual_lattice_matches_the_chord_grid(monkeypatch):
     gives the labels of the MLP-filled grids within 2e-3 (measured 3e-5) and the box gradient
     at cosine >= 0.999 (measured 1.0000); nothing recompiles when the boxes change size, which
     changes the lattice's node counts every step."""
-    from vsrd_plugins import silhouette
     rng = np.random.default_rng(21)
     scene = random_scene(rng, 3)
     rays = to_mi(*training_rays(rng, scene, 256))
@@ -847,7 +858,7 @@ def test_residual_lattice_matches_the_chord_grid(monkeypatch):
     out = {}
     for forced in (False, True):
         if forced:
-            monkeypatch.setattr(silhouette, "LATTICE_LOOKUP_COST", -1e9)  # always cheaper
+            monkeypatch.setattr(residual_search, "LATTICE_LOOKUP_COST", -1e9)  # always cheaper
         it = make(scene, residual_lattice=0.35 if forced else 0.0, **kw)
         out[forced] = labels_and_grads(it, lambda i: i.render_rays(*rays), [1.0, 2.0, 3.0])
     assert np.abs(out[True][0] - out[False][0]).max() <= 2e-3, np.abs(out[True][0] - out[False][0]).max()
@@ -879,8 +890,7 @@ def test_residual_lattice_extremes_are_finite(monkeypatch):
     """The lattice (forced) with boxes at both decoding bounds of their size, a zero yaw vector,
     a box 100 m away, a camera inside a box and sharpness 3 (a wide margin) to 1e4: labels
     finite and a partition of unity, gradients finite for every box and residual parameter."""
-    from vsrd_plugins import silhouette
-    monkeypatch.setattr(silhouette, "LATTICE_LOOKUP_COST", -1e9)  # always cheaper
+    monkeypatch.setattr(residual_search, "LATTICE_LOOKUP_COST", -1e9)  # always cheaper
     scene = {"centres": np.array([[0.0, 0.5, 8.0], [3.0, 0.5, 12.0], [-2.0, 0.5, 100.0]]),
              "sizes": np.array([[1.8, 1.5, 4.2]] * 3), "yaws": np.array([0.3, 0.0, -1.0]),
              "velocities": np.zeros((3, 3)), "dynamic": np.zeros(3)}
@@ -915,15 +925,16 @@ def test_residual_lattice_only_where_cheaper():
     scene = {"centres": np.array([[0.0, 0.0, 10.0]]), "sizes": np.array([[1.8, 1.5, 4.2]]), "yaws": np.zeros(1)}
     it = make(scene, residual=True)
     dec = it.field.decode()
-    spacing = it.cfg.residual_lattice / it._residual_omega()
-    extents = np.array([[0.9, 0.75, 2.1]]) + float(np.array(it._residual_reach())[0])
+    ctx = it.context()
+    spacing = it.settings.residual_lattice / ctx.residual_omega()
+    extents = np.array([[0.9, 0.75, 2.1]]) + float(np.array(ctx.residual_reach())[0])
     nodes = int(ResidualLattice.node_counts(extents, spacing).prod())
     even = nodes / (1.0 - LATTICE_LOOKUP_COST)  # grid points at which both cost the same
     with dr.suspend_grad():
-        assert it._residual_lattice(dec, int(0.9 * even)) is None
-        lattice = it._residual_lattice(dec, int(1.1 * even))
+        assert residual_lattice(ctx, dec, int(0.9 * even)) is None
+        lattice = residual_lattice(ctx, dec, int(1.1 * even))
     assert lattice is not None and dr.width(lattice.values) == nodes
-    assert make(scene, residual=True, residual_lattice=0.0)._residual_lattice(dec, 10 * nodes) is None
+    assert residual_lattice(make(scene, residual=True, residual_lattice=0.0).context(), dec, 10 * nodes) is None
 
 
 def test_pair_scan_evaluates_the_valid_pairs_only():
@@ -949,12 +960,12 @@ def sine_cell_scan(cell: int, amp: float, slope: float, kink_between: tuple[int,
     rays) and ``F = slope t + 0.5 |t - kink|`` (no kink term without ``kink_between``: the kink
     sits 60 % of the way between those two nominal samples) plus a full sine period of
     amplitude ``amp`` across the cell of nominal sample ``cell``. Returns ``moved(kinks)`` (the
-    first ray's moved positions, :meth:`_snapped_positions`), the sine cell's two extrema of
+    first ray's moved positions, :func:`snapped_positions`), the sine cell's two extrema of
     ``F``, its width and the kink (``None`` without one)."""
     it = make({"centres": np.array([[0.0, 0.0, 10.0]]), "sizes": np.array([[1.8, 1.5, 4.2]]),
                "yaws": np.zeros(1)}, residual=True)
     k, a, b = 6, 0.0, 6.0
-    nominal = [float(np.array(it._sub_sample(mi.Float(a), mi.Float(b), i, k))[0]) for i in range(k + 1)]
+    nominal = [float(np.array(sub_sample(mi.Float(a), mi.Float(b), i, k))[0]) for i in range(k + 1)]
     lo, hi = nominal[cell - 1], nominal[cell]
     w = hi - lo
     kink = None if kink_between is None else 0.4 * nominal[kink_between[0]] + 0.6 * nominal[kink_between[1]]
@@ -969,8 +980,8 @@ def sine_cell_scan(cell: int, amp: float, slope: float, kink_between: tuple[int,
     def moved(kinks=()):
         with dr.suspend_grad():
             sdf = PairScan.of(mi.Bool([True, True]), at)
-            out = it._snapped_positions(sdf, [mi.Float([a, a])], [mi.Float([b, b])], k, k,
-                                        kinks=[(kt, at(None, kt)) for kt in kinks])[0]
+            out = snapped_positions(sdf, [mi.Float([a, a])], [mi.Float([b, b])], k, k, SCAN,
+                                    kinks=[(kt, at(None, kt)) for kt in kinks])[0]
         return np.array([np.array(p)[0] for p in out])
 
     # F's slope across the sine cell (after the kink where there is one)
@@ -983,7 +994,7 @@ def sine_cell_scan(cell: int, amp: float, slope: float, kink_between: tuple[int,
 def test_moved_samples_share_a_cell_with_two_extrema():
     """A cell of the snapped sub-bands holding a maximum and a minimum of ``B + R``: both
     extrema claim a sample, the second the next cell's, whose own cell has none
-    (:meth:`_snapped_positions`): both get a sample within a tenth of the cell, and the
+    (:func:`snapped_positions`): both get a sample within a tenth of the cell, and the
     samples stay sorted."""
     moved, extrema, w, _ = sine_cell_scan(3, 0.1, 0.3)
     pos = moved()
@@ -996,7 +1007,7 @@ def test_moved_samples_take_crowded_extrema_and_kinks():
     """Two extrema of ``B + R`` in the last cell of a sub-band (no sample after it to lend one)
     both get a sample, an earlier one borrowed for the first; a kink where ``F`` has a local
     minimum (``kink``, a hit's deepest point) gets a sample exactly; the samples stay sorted
-    (:meth:`_snapped_positions`). With the kink left out, the scan's parabola across it misses
+    (:func:`snapped_positions`). With the kink left out, the scan's parabola across it misses
     it by more."""
     moved, extrema, w, kink = sine_cell_scan(6, 0.3, 0.3, kink_between=(1, 2))
     pos = moved([mi.Float([kink, kink])])
@@ -1015,7 +1026,7 @@ def test_moved_samples_sit_on_skewed_extrema():
     it = make({"centres": np.array([[0.0, 0.0, 10.0]]), "sizes": np.array([[1.8, 1.5, 4.2]]),
                "yaws": np.zeros(1)}, residual=True)
     k, a, b = 6, 0.0, 6.0
-    lo, hi = [float(np.array(it._sub_sample(mi.Float(a), mi.Float(b), i, k))[0]) for i in (3, 4)]
+    lo, hi = [float(np.array(sub_sample(mi.Float(a), mi.Float(b), i, k))[0]) for i in (3, 4)]
     w = hi - lo
     t_min = lo + 0.45 * w  # between the cell's first two scan points (1/3, 2/3)
 
@@ -1029,8 +1040,8 @@ def test_moved_samples_sit_on_skewed_extrema():
 
     with dr.suspend_grad():
         sdf = PairScan.of(mi.Bool([True, True]), at)
-        pos = np.array([np.array(p)[0] for p in it._snapped_positions(
-            sdf, [mi.Float([a, a])], [mi.Float([b, b])], k, k)[0]])
+        pos = np.array([np.array(p)[0] for p in snapped_positions(
+            sdf, [mi.Float([a, a])], [mi.Float([b, b])], k, k, SCAN)[0]])
     assert np.all(np.diff(pos) >= 0.0), pos
     near = pos[np.argmin(np.abs(pos - t_min))]
     assert abs(near - t_min) <= 0.02 * w, (t_min, pos)
@@ -1042,12 +1053,11 @@ def test_moved_samples_see_a_maximum_before_a_kink():
     kink: the scan points on either side of the maximum and the kink show ``F`` rising, but
     with the kink's value standing in for the scan point beyond it the maximum is an extremum
     and gets a sample (within a tenth of the cell), and the kink one exactly
-    (:meth:`_snapped_positions`; without the kink neither)."""
+    (:func:`snapped_positions`; without the kink neither)."""
     it = make({"centres": np.array([[0.0, 0.0, 10.0]]), "sizes": np.array([[1.8, 1.5, 4.2]]),
                "yaws": np.zeros(1)}, residual=True)
     k, a, b = 6, 0.0, 6.0
-    assert it.cfg.residual_tail_scan == 3
-    lo, hi = [float(np.array(it._sub_sample(mi.Float(a), mi.Float(b), i, k))[0]) for i in (3, 4)]
+    lo, hi = [float(np.array(sub_sample(mi.Float(a), mi.Float(b), i, k))[0]) for i in (3, 4)]
     w = hi - lo
     t_max, kink = lo + 0.6 * w, lo + 0.75 * w  # scan points of the cell at 1/3, 2/3 and 1
 
@@ -1061,8 +1071,8 @@ def test_moved_samples_see_a_maximum_before_a_kink():
     with dr.suspend_grad():
         sdf = PairScan.of(mi.Bool([True, True]), at)
         kt = mi.Float([kink, kink])
-        moved = [np.array([np.array(p)[0] for p in it._snapped_positions(
-            sdf, [mi.Float([a, a])], [mi.Float([b, b])], k, k, kinks=kinks)[0]])
+        moved = [np.array([np.array(p)[0] for p in snapped_positions(
+            sdf, [mi.Float([a, a])], [mi.Float([b, b])], k, k, SCAN, kinks=kinks)[0]])
             for kinks in ([(kt, at(None, kt))], [])]
     assert np.all(np.diff(moved[0]) >= 0.0), moved[0]
     assert np.min(np.abs(moved[0] - kink)) <= 1e-5, (kink, moved[0])
@@ -1078,10 +1088,10 @@ def test_band_ending_at_its_least_sdf_keeps_that_sample():
     to the minimum went unsampled (labels off by 0.05)."""
     it = make({"centres": np.array([[0.0, 0.0, 10.0]]), "sizes": np.array([[1.8, 1.5, 4.2]]),
                "yaws": np.zeros(1)}, residual=True)
-    k1, k2 = it._halves(it.cfg.band_samples)
-    kp, kq = it._tail_samples()
+    k1, k2 = halves(it.settings.band_samples)
+    kp, kq = it.context().tail_samples()
     lo, mid, hi, extra, tail = 0.0, 4.0, 6.0, 8.0, 10.0
-    before_last = float(np.array(it._sub_sample(mi.Float(mid), mi.Float(hi), k2 - 1, k2))[0])
+    before_last = float(np.array(sub_sample(mi.Float(mid), mi.Float(hi), k2 - 1, k2))[0])
     t_max = before_last + 0.5 * (hi - before_last)
 
     def f(t):
@@ -1098,9 +1108,9 @@ def test_band_ending_at_its_least_sdf_keeps_that_sample():
     sl = Slot(entry=arr(lo), lo=arr(lo), mid=arr(mid), hi=arr(hi), extra=arr(extra), peak=arr(extra),
               peak_lambda=far, peak_a=arr(0.0), peak_b=arr(0.0), tail_end=arr(tail), deepest=arr(hi))
     with dr.suspend_grad():
-        parts = it._snapped_slots(PairScan.of(mi.Bool([True, True]), at), [sl], [])
+        parts = snapped_slots(it.context(), PairScan.of(mi.Bool([True, True]), at), [sl], [])
         sl = replace(sl, moved=tuple(x for part in parts for x in part[0]))
-        runs = it._sub_bands(sl, it.cfg.band_samples, kp, kq, snapped=True)
+        runs = sub_bands(sl, it.settings.band_samples, kp, kq, snapped=True)
         first, count, value, _ = next(r for r in runs if r[0] == k1 + 1)
         second_half = np.array([np.array(value(mi.UInt32(i)))[0] for i in range(1, count + 1)])
     assert count == k2
@@ -1125,7 +1135,7 @@ def test_kink_minima_keep_the_kinks_where_the_sdf_has_a_local_minimum():
     with dr.suspend_grad():
         sdf = PairScan.of(mi.Bool([True, True]), at)
         kinks = [mi.Float([2.0, 3.0]), mi.Float([3.5, 4.5]), mi.Float([5.0, 6.0]), mi.Float([-1.0, -1.0])]
-        out = VSRDSilhouetteIntegrator._kink_minima(sdf, kinks)
+        out = kink_minima(sdf, kinks)
     assert len(out) == KINK_MINIMA == 2
     np.testing.assert_allclose(np.stack([np.array(t) for t, _, _ in out]), [[2.0, 3.0], [5.0, 6.0]])
     np.testing.assert_allclose(np.stack([np.array(v) for _, v, _ in out]), [[0.0, 0.0], [0.15, 0.15]], atol=1e-6)
@@ -1150,7 +1160,7 @@ def test_kink_minima_find_the_minimum_beside_a_sharp_bend():
         sdf = PairScan.of(mi.Bool([True, True]), at)
         none = mi.Float([-1.0, -1.0])
         bends = ([mi.Float([3.0, 3.0])] + [none] * 5, [mi.Float([rho, 0.3])] + [mi.Float([1.0, 1.0])] * 5)
-        out = VSRDSilhouetteIntegrator._kink_minima(sdf, [none], bends, 0.25)
+        out = kink_minima(sdf, [none], bends, 0.25)
     first, value = np.array(out[0][0]), np.array(out[0][1])
     assert np.all(np.array(out[0][2]) == -1.0)  # beside a bend F is smooth: no envelope
     assert abs(first[0] - t_min) <= 1e-4, (first, t_min)
@@ -1195,8 +1205,8 @@ def test_residual_peaks_move_to_the_instance_sdfs_crossing():
         none = GapPeak(mi.Float(0.0), mi.Bool(False), mi.Float(-1.0), mi.Float(0.0), mi.Float(0.0), mi.Float(1e30))
         # ray 1: deepest points 0 and 2, where F_a - F_b stays negative: no crossing in the gap
         ts = [mi.Float([0.5, 0.0]), mi.Float([3.0, 2.0])]
-        out = VSRDSilhouetteIntegrator._residual_peaks(sdf, [peak, none], ts, 0.5)[0]
-        kept = VSRDSilhouetteIntegrator._residual_peaks(sdf, [far, none], ts, 0.5)[0]
+        out = residual_peaks(sdf, [peak, none], ts, 0.5)[0]
+        kept = residual_peaks(sdf, [far, none], ts, 0.5)[0]
     np.testing.assert_array_equal(np.array(kept.t), np.float32([1.2, 2.0]))
     t, lam = np.array(out.t), np.array(out.lam)
     assert abs(t[0] - 5.0 / 3.0) <= 1e-4, t  # 0.5 (t - 1) = 2 - t

@@ -307,7 +307,7 @@ def make_integrator(cls, **props):
 
 def check_silhouette(it: VSRDSilhouetteIntegrator, k: SceneKnobs) -> Rays:
     it.set_schedule(k.sharpness, k.temperature)
-    margin = it.cfg.reach / k.sharpness + it.field.residual_reach
+    margin = it.settings.reach / k.sharpness + it.field.residual_reach
     rays = set_scene(it.field, k, margin)
     params = {key: it.field.params[key] for key in BOX_KEYS}
     if it.field.use_residual:

@@ -107,7 +107,7 @@ import drjit as dr
 import mitsuba as mi
 
 from .sdf import BoxView, DecodedBoxes, InstanceField, box_normal_local, box_sdf_local, ray_box_interval
-from .silhouette import instance_colours
+from .common import instance_colours
 
 INF = float("inf")
 
