@@ -18,7 +18,6 @@ import vsrd_mi  # noqa: F401  (selects the Mitsuba variant, registers the plugin
 import drjit as dr
 import mitsuba as mi
 
-from vsrd_plugins.sdf import instance_properties
 from vsrd_plugins.common import golden_minimum, illinois_root
 from vsrd_plugins.silhouette import VSRDSilhouetteIntegrator
 from vsrd_plugins.silhouette import adaptive as adaptive_module
@@ -33,16 +32,11 @@ from vsrd_plugins.silhouette.residual_search import (ChordGrid, PairScan, kink_m
                                                      residual_peaks)
 from vsrd_plugins.silhouette.settings import halves
 from vsrd_plugins.silhouette.slots import KINK_MINIMA, GapPeak, Slot, sub_sample
-from vsrd_mi.bench.integrator import BenchConfig, central_differences, fd_steps, new_kernels, reference_grid
+from vsrd_mi.bench.measure import central_differences, fd_steps, new_kernels, reference_labels, weighted_loss
+from vsrd_mi.bench.scenes import (BOX_KEYS, BenchConfig, case_data, load_integrator, random_scene, silhouette_integrator,
+                                  training_rays)
+from vsrd_plugins import box_properties
 
-BOX_KEYS = ("box_dims", "box_centre", "box_yaw", "box_velocity")
-#: reference grid spacing as a fraction of 1/s, and at most REF_SPACING_MAX_M: the derivative of a
-#: sampled integral also depends on where samples fall relative to the SDF's kinks (box edges, the
-#: crossing of two boxes' distances), which are sharp at any s. At s = 1, 3 boxes, one ray's label
-#: derivative read 2.2 / 1.2 / 1.4 (central differences, 0.05 / 0.01 / 0.003 m grids) and moved
-#: with the step size on the coarser grids.
-REF_SPACING_S = 0.05
-REF_SPACING_MAX_M = 0.005
 #: accurate dense sample counts (coarse, fine)
 DENSE_ACCURATE = (2000, 400)
 #: gradient cosine asserted in the slow full accuracy run (see the module docstring of the report)
@@ -66,72 +60,14 @@ FD_COSINE_MIN = 0.98
 # ----------------------------------------------------------------------------------------------
 
 
-def random_scene(rng, n: int, dynamic: bool = False) -> dict:
-    """``n`` car-like boxes 6-30 m ahead of a camera at the origin, with touching pairs."""
-    centres = np.stack([rng.uniform(-7, 7, n), rng.uniform(0.3, 1.2, n), rng.uniform(6, 30, n)], 1)
-    sizes = np.stack([rng.uniform(1.6, 2.1, n), rng.uniform(1.4, 1.8, n), rng.uniform(3.8, 5.0, n)], 1)
-    yaws = rng.uniform(-np.pi, np.pi, n)
-    for i in range(1, n, 3):  # every third box sits next to its predecessor (interacting SDFs)
-        yaws[i] = yaws[i - 1]
-        c, s_ = np.cos(yaws[i]), np.sin(yaws[i])
-        side = np.array([c, 0.0, -s_])  # local +x in the scene frame
-        gap = rng.uniform(0.05, 0.4)
-        centres[i] = centres[i - 1] + side * (0.5 * (sizes[i - 1, 0] + sizes[i, 0]) + gap)
-        centres[i, 1] = centres[i - 1, 1]
-    vel = rng.normal(0.0, 0.6, (n, 3)) * np.array([1.0, 0.0, 1.0]) if dynamic else np.zeros((n, 3))
-    dyn = (np.arange(n) % 2 == 0).astype(float) if dynamic else np.zeros(n)
-    return {"centres": centres, "sizes": sizes, "yaws": yaws, "velocities": vel, "dynamic": dyn}
-
-
 def make(scene: dict, **kw) -> VSRDSilhouetteIntegrator:
-    props = mi.Properties()
-    for k, v in {**instance_properties(**scene), **kw}.items():
-        props[k] = v
-    return VSRDSilhouetteIntegrator(props)
-
-
-def training_rays(rng, scene: dict, n: int, max_time: float = 0.0):
-    """Rays from near the origin: 60 % aimed at box interiors, 20 % at box edges/corners (grazing),
-    20 % anywhere in a 90-degree frustum. Returns (o, d, time) as NumPy arrays."""
-    nb = len(scene["centres"])
-    times = rng.uniform(-max_time, max_time, n) if max_time else np.zeros(n)
-    o = rng.normal(0.0, 0.05, (n, 3))
-    k = rng.integers(0, nb, n)
-    half = 0.5 * scene["sizes"][k]
-    local = rng.uniform(-1, 1, (n, 3)) * half
-    kind = rng.uniform(size=n)
-    edge = (kind >= 0.6) & (kind < 0.8)
-    snap = rng.uniform(size=(n, 3)) < 0.67
-    local = np.where(edge[:, None] & snap, np.sign(local) * half * (1.0 + rng.normal(0, 0.01, (n, 3))), local)
-    yaw = scene["yaws"][k]
-    c, s_ = np.cos(yaw), np.sin(yaw)
-    world = np.stack([c * local[:, 0] + s_ * local[:, 2], local[:, 1], -s_ * local[:, 0] + c * local[:, 2]], 1)
-    centre = scene["centres"][k] + scene["dynamic"][k, None] * scene["velocities"][k] * times[:, None]
-    target = centre + world
-    anywhere = np.stack([rng.uniform(-1, 1, n), rng.uniform(-0.3, 0.3, n), np.ones(n)], 1)
-    d = np.where((kind >= 0.8)[:, None], anywhere, target - o)
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
-    return o, d, times
+    """An integrator of ``scene`` with plugin properties and settings ``kw``."""
+    return silhouette_integrator(scene, **kw)
 
 
 def to_mi(o, d, t):
     return (mi.Point3f(np.ascontiguousarray(o.T, np.float32)),
             mi.Vector3f(np.ascontiguousarray(d.T, np.float32)), mi.Float(t.astype(np.float32)))
-
-
-def reference_labels(it: VSRDSilhouetteIntegrator, scene: dict, rays, s: float):
-    """The integral on a uniform grid over [0, beyond the farthest box] (spacing REF_SPACING_S/s,
-    at most REF_SPACING_MAX_M)
-    plus each box's deepest point along each ray (at the integrator's current boxes)."""
-    o, d, t = rays
-    n = dr.width(o.x)
-    reach = np.linalg.norm(scene["centres"], axis=1) + np.linalg.norm(scene["sizes"], axis=1)
-    reach += np.abs(scene["velocities"]).sum(1) * 3.0 + 2.0
-    t_max = float(reach.max())
-    m = int(np.ceil(t_max / min(REF_SPACING_S / s, REF_SPACING_MAX_M)))
-    grid, mm = reference_grid(it.field.numpy_boxes(), np.array(o).T.astype(np.float64),
-                              np.array(d).T.astype(np.float64), np.array(t, dtype=np.float64), t_max, m)
-    return it.integrate_at(it.field.decode(), dr.arange(mi.UInt32, n), o, d, t, grid, mm)
 
 
 def labels_and_grads(it, fn, weights):
@@ -417,7 +353,7 @@ def test_isolated_rays_are_those_whose_boxes_do_not_interact():
     # two more boxes far to the side that neither ray meets: no slots for them
     centres = np.array([[0.0, 0.0, 10.0], [0.0, 0.0, 20.0], [2.1, 0.0, 20.0], [30.0, 0.0, 20.0],
                         [-30.0, 0.0, 20.0]])
-    scene = {"centres": centres, "sizes": np.array([[1.9, 1.5, 4.0]] * 5), "yaws": np.zeros(5)}
+    scene = {"centre": centres, "size": np.array([[1.9, 1.5, 4.0]] * 5), "yaw": np.zeros(5)}
     # one ray through the first two boxes' centres, one grazing between the side-by-side pair
     d = np.array([[0.0, 0.0, 1.0], [1.05 / 20.0, 0.0, 1.0]])
     rays = to_mi(np.zeros((2, 3)), d / np.linalg.norm(d, axis=1, keepdims=True), np.zeros(2))
@@ -497,10 +433,10 @@ def test_rays_meeting_one_box_evaluate_only_that_box():
     """Rays aimed at the second of two far-apart boxes evaluate it alone (one SDF evaluation per
     sample). Instance 0 used to be marked as met by every ray meeting any box (an in-place
     ``|=`` on its own mask) and got a band of its own on each of them."""
-    scene = {"centres": np.array([[-8.0, 0.5, 15.0], [6.0, 0.5, 15.0]]),
-             "sizes": np.array([[1.8, 1.5, 4.2], [2.0, 1.6, 4.5]]), "yaws": np.array([0.3, -0.4])}
+    scene = {"centre": np.array([[-8.0, 0.5, 15.0], [6.0, 0.5, 15.0]]),
+             "size": np.array([[1.8, 1.5, 4.2], [2.0, 1.6, 4.5]]), "yaw": np.array([0.3, -0.4])}
     rng = np.random.default_rng(3)
-    d = scene["centres"][1] + rng.uniform(-0.8, 0.8, (64, 3))
+    d = scene["centre"][1] + rng.uniform(-0.8, 0.8, (64, 3))
     rays = to_mi(np.zeros((64, 3)), d / np.linalg.norm(d, axis=1, keepdims=True), np.zeros(64))
     it = make(scene, sharpness=10.0, temperature=0.1)
     with dr.suspend_grad():
@@ -572,9 +508,9 @@ def test_gradients_match_finite_differences(sampling):
     def labels(it):
         return it.integrate_at(it.field.decode(), dr.arange(mi.UInt32, n_rays), *rays, grid, grid_m)
 
-    def loss(raw: dict) -> float:
+    def loss(values: dict) -> float:
         it = make(scene, sampling="dense", **kw)
-        for k, v in raw.items():
+        for k, v in values.items():
             it.field.params[k] = mi.Float(v.astype(np.float32))
         with dr.suspend_grad():
             lab = labels(it)
@@ -583,11 +519,11 @@ def test_gradients_match_finite_differences(sampling):
     base = {k: np.array(it.field.params[k], dtype=np.float64) for k in BOX_KEYS}
     _, g = labels_and_grads(it, labels, [mi.Float(x.astype(np.float32)) for x in w])
     offsets = np.cumsum([0] + [len(base[k]) for k in BOX_KEYS])
-    # eps per raw parameter: ~1 mm of decoded centre, 3 mm of size (1/s = 0.33 m; a 1 cm step already
-    # shows the curvature), ~2e-3 rad of yaw, 2 mm/frame of velocity
-    eps = {"box_dims": 0.002, "box_centre": 3e-5, "box_yaw": 2e-3, "box_velocity": 2e-3}
-    checks = [("box_centre", 0), ("box_centre", 2), ("box_dims", 0), ("box_dims", 5),
-              ("box_yaw", 1), ("box_velocity", 0), ("box_velocity", 8)]
+    # eps per parameter: 2 mm of centre, 3 mm of size (1/s = 0.33 m; a 1 cm step already shows the
+    # curvature), 2e-3 rad of yaw, 2 mm/frame of velocity
+    eps = {"size": 0.003, "centre": 0.002, "yaw": 2e-3, "velocity": 2e-3}
+    checks = [("centre", 0), ("centre", 2), ("size", 0), ("size", 5), ("yaw", 0), ("velocity", 0),
+              ("velocity", 8)]
     ads, fds = [], []
     for key, i in checks:
         e = eps[key]
@@ -606,7 +542,7 @@ def test_gradients_match_finite_differences(sampling):
 
 def converged_fd_gradient(scene: dict, rays, weights, s: float, **kw) -> np.ndarray:
     """Central differences of ``sum weights * labels`` of the converged integral
-    (:func:`reference_labels`) w.r.t. every raw box parameter, steps moving surfaces ~5 mm
+    (:func:`reference_labels`) w.r.t. every box parameter, steps moving surfaces ~5 mm
     (``kw``: integrator options, e.g. the residual field)."""
     it = make(scene, sampling="dense", sharpness=s, temperature=1.0 / s, **kw)
     w = np.stack([np.array(x, dtype=np.float64) for x in weights])
@@ -616,7 +552,7 @@ def converged_fd_gradient(scene: dict, rays, weights, s: float, **kw) -> np.ndar
             lab = reference_labels(it, scene, rays, s)[:it.field.n]
             return float((np.stack([np.array(x, dtype=np.float64) for x in lab]) * w).sum())
 
-    return central_differences(it, loss, fd_steps(it, BenchConfig()))
+    return central_differences(it, loss, fd_steps(it.field.n, BenchConfig()))
 
 
 def test_ridge_gradients_follow_the_converged_integral():
@@ -684,11 +620,11 @@ def finite_labels_and_grads(scene: dict, rays, **kw) -> None:
 
 @pytest.mark.parametrize("s", [1.0, 100.0, 1e4])
 def test_no_nan_extreme_cases(s):
-    box = {"centres": np.array([[0.0, 0.0, 0.0], [3.0, 0.0, 10.0], [0.0, 0.0, 100.0], [0.0, 0.0, 140.0]]),
-           "sizes": np.array([[1.8, 1.5, 4.2], [2.0, 1.6, 4.5], [1.8, 1.5, 4.2], [1.8, 1.5, 4.2]]),
-           "yaws": np.array([0.0, 0.0, 0.5, 0.0]), "velocities": np.zeros((4, 3)), "dynamic": np.zeros(4)}
-    h = 0.5 * box["sizes"][1]
-    c = box["centres"][1]
+    box = {"centre": np.array([[0.0, 0.0, 0.0], [3.0, 0.0, 10.0], [0.0, 0.0, 100.0], [0.0, 0.0, 140.0]]),
+           "size": np.array([[1.8, 1.5, 4.2], [2.0, 1.6, 4.5], [1.8, 1.5, 4.2], [1.8, 1.5, 4.2]]),
+           "yaw": np.array([0.0, 0.0, 0.5, 0.0]), "velocity": np.zeros((4, 3)), "dynamic": np.zeros(4)}
+    h = 0.5 * box["size"][1]
+    c = box["centre"][1]
     o = np.zeros((7, 3))  # the camera sits inside box 0
     targets = np.array([c + [h[0], 0.0, -h[2]], c + [h[0], 0.0, h[2]],       # along a face
                         c + [h[0], h[1], 0.0], [0.0, 0.0, 100.0],              # edge; far box
@@ -701,20 +637,24 @@ def test_no_nan_extreme_cases(s):
     finite_labels_and_grads(box, rays, sharpness=s, temperature=1.0 / s)
 
 
-def test_no_nan_at_decoding_bounds_and_zero_yaw():
-    from vsrd_plugins.sdf import BoxRanges
-    r = BoxRanges()
-    scene = {"centres": np.array([[0.0, 0.5, 12.0], [3.0, 0.5, 15.0]]),
-             "sizes": np.array([2.0 * np.array(r.half_lo) * 1.0001, 2.0 * np.array(r.half_hi) * 0.9999]),
-             "yaws": np.zeros(2), "velocities": np.zeros((2, 3)), "dynamic": np.zeros(2)}
+@pytest.mark.parametrize("residual", [False, True])
+def test_no_nan_with_tiny_huge_and_turned_boxes(residual):
+    """Boxes are what the parameters say (nothing clamps them): a 2 cm box, a 20 m box and yaws
+    far outside (-pi, pi] render finite labels (a partition of unity) with finite gradients,
+    and the boxes keep their values."""
+    scene = {"centre": np.array([[0.0, 0.5, 12.0], [3.0, 0.5, 30.0], [-2.0, 0.5, 9.0]]),
+             "size": np.array([[0.02, 0.02, 0.02], [20.0, 20.0, 20.0], [1.8, 1.5, 4.2]]),
+             "yaw": np.array([0.0, 40.0, -7.5]), "velocity": np.zeros((3, 3)), "dynamic": np.zeros(3)}
     rng = np.random.default_rng(9)
-    rays = to_mi(*training_rays(rng, scene, 64))
-    it = make(scene)
-    it.field.params["box_yaw"] = mi.Float(0.0, 0.0, 1.0, 0.0)
-    w = [mi.Float(np.ones(64, np.float32))] * 2
+    rays = to_mi(*training_rays(rng, scene, 96))
+    it = make(scene, residual=residual)
+    w = [mi.Float(np.ones(96, np.float32))] * 3
     vals, grad = labels_and_grads(it, lambda it: it.render_rays(*rays), w)
     assert np.all(np.isfinite(vals)) and np.all(np.isfinite(grad))
-    assert vals[0].max() > 0.5  # the zero-yaw box still renders (as yaw 0)
+    np.testing.assert_allclose(it.render_rays(*rays)[-1].numpy() + vals.sum(0), 1.0, atol=1e-4)
+    assert vals[1].max() > 0.5 and vals[2].max() > 0.5  # the big and the turned box render
+    np.testing.assert_allclose(it.boxes()["size"], scene["size"], rtol=1e-6)
+    np.testing.assert_allclose(it.boxes()["yaw"], scene["yaw"], rtol=1e-6)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -726,7 +666,7 @@ def small_scene_dict(scene: dict, **kw) -> dict:
     from vsrd_mi.scene.sensors import perspective_sensor
     K = np.array([[40.0, 0, 15.5], [0, 40.0, 11.5], [0, 0, 1]])
     return {"type": "scene",
-            "integrator": {"type": "vsrd_silhouette", "id": "vsrd", **instance_properties(**scene), **kw},
+            "integrator": {"type": "vsrd_silhouette", "id": "vsrd", **box_properties(**scene), **kw},
             "sensor": perspective_sensor(K, np.eye(4), (32, 24), 0),
             }
 
@@ -742,9 +682,13 @@ def test_render_traverse_and_no_recompilation():
     np.testing.assert_allclose(arr[..., 3:].sum(-1), 1.0, atol=1e-4)
     params = mi.traverse(sc)
     keys = set(params.keys())
-    for k in ("vsrd.box_dims", "vsrd.box_centre", "vsrd.box_yaw", "vsrd.box_velocity",
+    for k in ("vsrd.centre", "vsrd.size", "vsrd.yaw", "vsrd.velocity", "vsrd.dynamic",
               "vsrd.rdf_embedding", "vsrd.rdf_hyper_w0", "vsrd.sharpness", "vsrd.temperature"):
         assert k in keys, k
+    # the boxes in physical units, as given; the residual's parameters only with the field on
+    np.testing.assert_allclose(np.array(params["vsrd.size"]), scene["size"].ravel(), rtol=1e-6)
+    np.testing.assert_allclose(np.array(params["vsrd.yaw"]), scene["yaw"], rtol=1e-6)
+    assert not any("rdf_" in k for k in mi.traverse(mi.load_dict(small_scene_dict(scene))).keys())
     rays = to_mi(*training_rays(rng, scene, 256))
     integ = sc.integrator()
     dr.set_flag(dr.JitFlag.KernelHistory, True)
@@ -762,14 +706,14 @@ def test_render_traverse_and_no_recompilation():
             params["vsrd.temperature"] = 1.0 / s + 0.01 * (i >= len(base))
             params.update()
             dr.kernel_history()  # clear
-            p = integ.field.params["box_centre"]
+            p = integ.field.params["centre"]
             dr.enable_grad(p)
             lab = integ.render_rays(*rays)
             dr.backward(dr.sum(lab[0] * lab[0]))
             g = dr.grad(p)
             dr.eval(g)
             compiles.append(new_kernels(seen))
-            integ.field.params["box_centre"] = dr.detach(p)
+            integ.field.params["centre"] = dr.detach(p)
             assert np.all(np.isfinite(np.array(g)))
         assert compiles[7:] == [0] * 7, compiles
     finally:
@@ -871,12 +815,12 @@ def test_residual_lattice_matches_the_chord_grid(monkeypatch):
     dr.set_flag(dr.JitFlag.KernelHistory, True)
     try:
         for integ, batch in runs:
-            dims = np.array(integ.field.params["box_dims"])
+            size = np.array(integ.field.params["size"])
             seen, compiles = set(), []
             # a first pass compiles each sampling layout once, a second with other sizes (other
             # node counts per box) must compile nothing
-            for offset in (0.0, 0.15, 0.3, 0.07, 0.22, 0.37):
-                integ.field.params["box_dims"] = mi.Float(dims + offset)
+            for offset in (0.0, 0.1, 0.2, 0.05, 0.15, 0.25):
+                integ.field.params["size"] = mi.Float(size + offset)
                 dr.kernel_history()  # clear
                 with dr.suspend_grad():
                     dr.eval(integ.render_rays(*batch))
@@ -887,23 +831,20 @@ def test_residual_lattice_matches_the_chord_grid(monkeypatch):
 
 
 def test_residual_lattice_extremes_are_finite(monkeypatch):
-    """The lattice (forced) with boxes at both decoding bounds of their size, a zero yaw vector,
-    a box 100 m away, a camera inside a box and sharpness 3 (a wide margin) to 1e4: labels
-    finite and a partition of unity, gradients finite for every box and residual parameter."""
+    """The lattice (forced) with a 5 cm box, a 12 m box, a box 100 m away, a camera inside a box
+    and sharpness 3 (a wide margin) to 1e4: labels finite and a partition of unity, gradients
+    finite for every box and residual parameter."""
     monkeypatch.setattr(residual_search, "LATTICE_LOOKUP_COST", -1e9)  # always cheaper
-    scene = {"centres": np.array([[0.0, 0.5, 8.0], [3.0, 0.5, 12.0], [-2.0, 0.5, 100.0]]),
-             "sizes": np.array([[1.8, 1.5, 4.2]] * 3), "yaws": np.array([0.3, 0.0, -1.0]),
-             "velocities": np.zeros((3, 3)), "dynamic": np.zeros(3)}
+    scene = {"centre": np.array([[0.0, 0.5, 8.0], [3.0, 0.5, 12.0], [-2.0, 0.5, 100.0]]),
+             "size": np.array([[1.8, 1.5, 4.2]] * 3), "yaw": np.array([0.3, 0.0, -1.0]),
+             "velocity": np.zeros((3, 3)), "dynamic": np.zeros(3)}
     rng = np.random.default_rng(12)
     o, d, t = training_rays(rng, scene, 192)
-    o[:64] = scene["centres"][0] + rng.uniform(-0.3, 0.3, (64, 3))  # inside the first box
+    o[:64] = scene["centre"][0] + rng.uniform(-0.3, 0.3, (64, 3))  # inside the first box
     rays = to_mi(o, d, t)
     for s in (3.0, 10.0, 1e4):
         it = make(scene, residual=True, sharpness=s, temperature=0.1)
-        it.field.params["box_dims"] = mi.Float([-1e4] * 3 + [1e4] * 3 + [0.0] * 3)  # size bounds
-        yaw = np.array(it.field.params["box_yaw"])
-        yaw[2:4] = 0.0  # a zero yaw vector
-        it.field.params["box_yaw"] = mi.Float(yaw)
+        it.field.params["size"] = mi.Float([0.05] * 3 + [12.0] * 3 + [1.8, 1.5, 4.2])
         keys = list(BOX_KEYS) + [f"rdf_{k}" for k in it.field.residual.params]
         params = {k: it.field.params[k] if k in BOX_KEYS else it.field.residual.params[k[4:]] for k in keys}
         for p_ in params.values():
@@ -917,12 +858,13 @@ def test_residual_lattice_extremes_are_finite(monkeypatch):
             assert np.all(np.isfinite(np.array(dr.grad(p_)))), (s, k)
         assert vals[:3, 64:].max() > 0.5  # the rays from outside do see the boxes
 
+
 def test_residual_lattice_only_where_cheaper():
     """The integrator tabulates the residual when the lattice's nodes, plus a lookup per chord
     grid point, cost fewer MLP evaluations than the chord grid's points (a dense ray batch),
     and evaluates the chords otherwise."""
     from vsrd_plugins.sdf import LATTICE_LOOKUP_COST, ResidualLattice
-    scene = {"centres": np.array([[0.0, 0.0, 10.0]]), "sizes": np.array([[1.8, 1.5, 4.2]]), "yaws": np.zeros(1)}
+    scene = {"centre": np.array([[0.0, 0.0, 10.0]]), "size": np.array([[1.8, 1.5, 4.2]]), "yaw": np.zeros(1)}
     it = make(scene, residual=True)
     dec = it.field.decode()
     ctx = it.context()
@@ -962,8 +904,8 @@ def sine_cell_scan(cell: int, amp: float, slope: float, kink_between: tuple[int,
     amplitude ``amp`` across the cell of nominal sample ``cell``. Returns ``moved(kinks)`` (the
     first ray's moved positions, :func:`snapped_positions`), the sine cell's two extrema of
     ``F``, its width and the kink (``None`` without one)."""
-    it = make({"centres": np.array([[0.0, 0.0, 10.0]]), "sizes": np.array([[1.8, 1.5, 4.2]]),
-               "yaws": np.zeros(1)}, residual=True)
+    it = make({"centre": np.array([[0.0, 0.0, 10.0]]), "size": np.array([[1.8, 1.5, 4.2]]),
+               "yaw": np.zeros(1)}, residual=True)
     k, a, b = 6, 0.0, 6.0
     nominal = [float(np.array(sub_sample(mi.Float(a), mi.Float(b), i, k))[0]) for i in range(k + 1)]
     lo, hi = nominal[cell - 1], nominal[cell]
@@ -1023,8 +965,8 @@ def test_moved_samples_sit_on_skewed_extrema():
     residual field's): the moved sample lands on it within 2 % of the cell, its value within
     0.02 of the minimum (:meth:`_refined_extrema`'s golden-section steps; the vertex of the
     parabola through the three scan points, the code before, a quarter of a cell off, 0.14 above)."""
-    it = make({"centres": np.array([[0.0, 0.0, 10.0]]), "sizes": np.array([[1.8, 1.5, 4.2]]),
-               "yaws": np.zeros(1)}, residual=True)
+    it = make({"centre": np.array([[0.0, 0.0, 10.0]]), "size": np.array([[1.8, 1.5, 4.2]]),
+               "yaw": np.zeros(1)}, residual=True)
     k, a, b = 6, 0.0, 6.0
     lo, hi = [float(np.array(sub_sample(mi.Float(a), mi.Float(b), i, k))[0]) for i in (3, 4)]
     w = hi - lo
@@ -1054,8 +996,8 @@ def test_moved_samples_see_a_maximum_before_a_kink():
     with the kink's value standing in for the scan point beyond it the maximum is an extremum
     and gets a sample (within a tenth of the cell), and the kink one exactly
     (:func:`snapped_positions`; without the kink neither)."""
-    it = make({"centres": np.array([[0.0, 0.0, 10.0]]), "sizes": np.array([[1.8, 1.5, 4.2]]),
-               "yaws": np.zeros(1)}, residual=True)
+    it = make({"centre": np.array([[0.0, 0.0, 10.0]]), "size": np.array([[1.8, 1.5, 4.2]]),
+               "yaw": np.zeros(1)}, residual=True)
     k, a, b = 6, 0.0, 6.0
     lo, hi = [float(np.array(sub_sample(mi.Float(a), mi.Float(b), i, k))[0]) for i in (3, 4)]
     w = hi - lo
@@ -1086,8 +1028,8 @@ def test_band_ending_at_its_least_sdf_keeps_that_sample():
     sample and the band's last sample stays at ``hi`` (:meth:`_snapped_slots`,
     :meth:`_sub_bands`). When that sample could move, the maximum took it and the descent
     to the minimum went unsampled (labels off by 0.05)."""
-    it = make({"centres": np.array([[0.0, 0.0, 10.0]]), "sizes": np.array([[1.8, 1.5, 4.2]]),
-               "yaws": np.zeros(1)}, residual=True)
+    it = make({"centre": np.array([[0.0, 0.0, 10.0]]), "size": np.array([[1.8, 1.5, 4.2]]),
+               "yaw": np.zeros(1)}, residual=True)
     k1, k2 = halves(it.settings.band_samples)
     kp, kq = it.context().tail_samples()
     lo, mid, hi, extra, tail = 0.0, 4.0, 6.0, 8.0, 10.0
@@ -1221,13 +1163,11 @@ def test_residual_grid_keeps_the_sparse_gradient():
     benchmark's 3-box residual scene (measured 3.4e-4; 4.2e-2 when the interpolated values
     alone decided, which froze shallow extrema of the exact ``B + R``)."""
     cfg = BenchConfig()
-    from vsrd_mi.bench.integrator import case_data, integrator_description, weighted_loss
     data, _ = case_data(cfg, 3, True)
     batch = data.batch(4096)
     grads = {}
     for sparse in (False, True):
-        it = mi.load_dict({**integrator_description(data.boxes, "adaptive", True, cfg),
-                           "residual_sparse_gradients": sparse})
+        it = load_integrator(data.boxes, "adaptive", True, cfg, residual_sparse_gradients=sparse)
         for k in BOX_KEYS:
             dr.enable_grad(it.field.params[k])
         labels = it.render_rays(batch.o, batch.d, batch.time)

@@ -125,21 +125,27 @@ def format_numbers(values) -> str:
     return " ".join(f"{float(v):.9g}" for v in np.asarray(values, dtype=np.float64).ravel())
 
 
-def instance_properties(centres, sizes, yaws, velocities=None, dynamic=None) -> dict[str, str | int]:
-    """Plugin properties describing ``N`` boxes, for ``mi.load_dict`` or XML ``<string>`` tags.
+def box_properties(centre, size, yaw=None, velocity=None, dynamic=None) -> dict[str, str]:
+    """The box properties of ``vsrd_silhouette`` / ``sdf_tracer`` from lists, tuples or NumPy
+    arrays, as strings (``mi.load_dict`` and XML ``<string>`` tags accept them).
 
     Args:
-        centres: (N, 3) box centres in the scene frame.
-        sizes: (N, 3) full extents (width, height, length) along the box-local (x, y, z) axes.
-        yaws: (N,) yaw angles in radians (length axis along ``(sin yaw, 0, cos yaw)``).
-        velocities: (N, 3) velocities per unit of ray time, or None for zeros.
+        centre: (N, 3) box centres in the scene frame.
+        size: (N, 3) full extents (width, height, length) along the box-local (x, y, z) axes.
+        yaw: (N,) yaw angles in radians (length axis along ``(sin yaw, 0, cos yaw)``); None: 0.
+        velocity: (N, 3) velocities per unit of ray time, or None for zeros.
         dynamic: (N,) 0/1 flags, or None for all static.
     """
-    centres = np.asarray(centres, dtype=np.float64).reshape(-1, 3)
-    n = len(centres)
-    sizes = np.asarray(sizes, dtype=np.float64).reshape(n, 3)
-    yaws = np.asarray(yaws, dtype=np.float64).reshape(n)
-    velocities = np.zeros((n, 3)) if velocities is None else np.asarray(velocities).reshape(n, 3)
-    dynamic = np.zeros(n) if dynamic is None else np.asarray(dynamic, dtype=np.float64).reshape(n)
-    return {"num_instances": n, "centres": format_numbers(centres), "sizes": format_numbers(sizes),
-            "yaws": format_numbers(yaws), "velocities": format_numbers(velocities), "dynamic": format_numbers(dynamic)}
+    centre = np.asarray(centre, dtype=np.float64).reshape(-1, 3)
+    n = len(centre)
+
+    def shaped(name: str, values, per_box: int) -> np.ndarray:
+        values = np.zeros(n * per_box) if values is None else np.asarray(values, dtype=np.float64)
+        if values.size != n * per_box:
+            raise PropertyError(f"box_properties: '{name}' has {values.size} values, expected {n * per_box} "
+                                f"({per_box} per box, {n} boxes)")
+        return values.ravel()
+
+    return {"centre": format_numbers(centre), "size": format_numbers(shaped("size", size, 3)),
+            "yaw": format_numbers(shaped("yaw", yaw, 1)), "velocity": format_numbers(shaped("velocity", velocity, 3)),
+            "dynamic": format_numbers(shaped("dynamic", dynamic, 1))}

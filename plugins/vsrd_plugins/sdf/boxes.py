@@ -24,50 +24,6 @@ from typing import Sequence
 
 import drjit as dr
 import mitsuba as mi
-import numpy as np
-
-from ..properties import read_floats
-
-
-def logit_np(p: np.ndarray, eps: float = 1e-6) -> np.ndarray:
-    """Inverse of the sigmoid (NumPy), clipped away from 0 and 1."""
-    p = np.clip(np.asarray(p, dtype=np.float64), eps, 1.0 - eps)
-    return np.log(p) - np.log1p(-p)
-
-
-
-@dataclass(frozen=True)
-class BoxRanges:
-    """Decoding ranges of the box parameters (REFERENCE §1, widened to cover real vehicles).
-
-    Half-extents (x = width, y = height, z = length): full sizes 1.1-2.7 m wide, 1.0-3.3 m high,
-    2.2-7.2 m long, covering city cars (2.5 m), low sports cars (1.16 m high), pickups and vans
-    (5.2-6 m long, 2.3 m wide) that the reference's 1.5-2.0 x 1.5-2.0 x 3-5 m cannot represent.
-    Centres: +-60 m laterally, -5..8 m vertically (y down, camera at 0), -5..110 m forward.
-    """
-
-    half_lo: tuple[float, float, float] = (0.55, 0.5, 1.1)
-    half_hi: tuple[float, float, float] = (1.35, 1.65, 3.6)
-    centre_lo: tuple[float, float, float] = (-60.0, -5.0, -5.0)
-    centre_hi: tuple[float, float, float] = (60.0, 8.0, 110.0)
-
-    @staticmethod
-    def from_props(props: mi.Properties) -> "BoxRanges":
-        d = BoxRanges()
-        kw = {}
-        for name in ("half_lo", "half_hi", "centre_lo", "centre_hi"):
-            if name in props:
-                kw[name] = tuple(read_floats(props, "vsrd plugin", name, 3))
-        return BoxRanges(**{**d.__dict__, **kw})
-
-    def encode(self, centres: np.ndarray, sizes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Raw ``(box_dims, box_centre)`` (flat) for decoded centres (N,3) and full sizes (N,3)."""
-        lo, hi = np.array(self.half_lo), np.array(self.half_hi)
-        half = 0.5 * np.asarray(sizes, dtype=np.float64).reshape(-1, 3)
-        raw_dims = logit_np((half - lo) / (hi - lo))
-        clo, chi = np.array(self.centre_lo), np.array(self.centre_hi)
-        raw_centre = logit_np((np.asarray(centres, dtype=np.float64).reshape(-1, 3) - clo) / (chi - clo))
-        return raw_dims.ravel(), raw_centre.ravel()
 
 
 @dataclass

@@ -8,95 +8,96 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from ..common import sigmoid
-from ..properties import read_floats
-from .boxes import (BoxRanges, BoxView, DecodedBoxes, box_sdf_local, box_sdf_ray_local, ridge_faces)
+from ..properties import PropertyError, read_bool, read_floats, read_int
+from .boxes import (BoxView, DecodedBoxes, box_sdf_local, box_sdf_ray_local, ridge_faces)
 from .lane_gradient import lane_box_sdf
 from .residual import ResidualConfig, ResidualField
 
 
-class InstanceField:
-    """All instances of a scene: differentiable box parameters and an optional residual field.
+#: The box parameters: name, values per box, whether differentiable. The names are the plugin
+#: properties and the keys under which ``mi.traverse`` lists them.
+BOX_PARAMETERS = (("centre", 3, True), ("size", 3, True), ("yaw", 1, True), ("velocity", 3, True),
+                  ("dynamic", 1, False))
+#: Prefix of the residual field's parameters in ``mi.traverse``.
+RESIDUAL_PREFIX = "rdf_"
 
-    Built from plugin properties (``num_instances``, ``centres``, ``sizes``, ``yaws``,
-    ``velocities``, ``dynamic``, optional ranges ``half_lo``/``half_hi``/``centre_lo``/
-    ``centre_hi``, ``residual`` (bool), ``residual_seed``, ``residual_shift``,
-    ``residual_gradients``: :attr:`ResidualConfig.gradients`).
+
+class InstanceField:
+    """Every box of a scene in physical units, and the optional residual field.
+
+    Box parameters (flat Dr.Jit Floats, box-major; :data:`BOX_PARAMETERS`): ``centre`` (3N, scene
+    units), ``size`` (3N, full extents along the box-local x, y, z: width, height, length),
+    ``yaw`` (N, radians about +y), ``velocity`` (3N, scene units per unit of ray time) and
+    ``dynamic`` (N, 0 or 1): a box's centre at ray time ``t`` is ``centre + dynamic * velocity *
+    t``. A box is what these say: nothing clamps or reparameterises them. With the residual
+    field (``residual``) its embedding and hypernetwork weights are parameters too
+    (``rdf_embedding``, ``rdf_hyper_w{i}``, ``rdf_hyper_b{i}``); :attr:`use_residual` pauses
+    the field without removing them.
     """
 
-    PREFIX_BOX = "box_"
-
-    def __init__(self, props: mi.Properties):
-        n = int(props.get("num_instances", 0))
-        if n < 0:
-            raise ValueError("vsrd plugin: num_instances must be >= 0")
-        self.n = n
-        self.ranges = BoxRanges.from_props(props)
-        centres = read_floats(props, "vsrd plugin", "centres", 3 * n, None if n else 0.0).reshape(n, 3)
-        sizes = read_floats(props, "vsrd plugin", "sizes", 3 * n, None if n else 1.0).reshape(n, 3)
-        yaws = read_floats(props, "vsrd plugin", "yaws", n, 0.0)
-        vel = read_floats(props, "vsrd plugin", "velocities", 3 * n, 0.0)
-        dyn = read_floats(props, "vsrd plugin", "dynamic", n, 0.0)
-        raw_dims, raw_centre = self.ranges.encode(centres, sizes)
-        yaw_vec = np.stack([np.cos(yaws), np.sin(yaws)], axis=1).ravel()
-        self.params: dict[str, mi.Float] = {
-            "box_dims": mi.Float(raw_dims.astype(np.float32)),
-            "box_centre": mi.Float(raw_centre.astype(np.float32)),
-            "box_yaw": mi.Float(yaw_vec.astype(np.float32)),
-            "box_velocity": mi.Float(vel.astype(np.float32)),
-            "box_dynamic": mi.Float(dyn.astype(np.float32)),
-        }
-        self.use_residual = bool(props.get("residual", False))
-        rcfg = ResidualConfig(seed=int(props.get("residual_seed", 0)),
-                              shift=float(props.get("residual_shift", ResidualConfig.shift)),
-                              gradients=str(props.get("residual_gradients", ResidualConfig.gradients)))
-        if rcfg.gradients not in ("fused", "tensor"):
-            raise ValueError(f"vsrd plugin: residual_gradients must be 'fused' or 'tensor', got {rcfg.gradients!r}")
-        self.residual = ResidualField(n, rcfg) if n else None
-        self._weights = None
+    def __init__(self, props, plugin: str):
+        self.plugin = plugin
+        present = "centre" in props or "size" in props
+        centre = read_floats(props, plugin, "centre") if present else np.zeros(0)
+        if centre.size % 3:
+            raise PropertyError(f"{plugin}: property 'centre' has {centre.size} values, expected 3 per box")
+        n = self.n = centre.size // 3
+        size = read_floats(props, plugin, "size", 3 * n, positive=True) if present else np.zeros(0)
+        values = {"centre": centre, "size": size, "yaw": read_floats(props, plugin, "yaw", n, 0.0),
+                  "velocity": read_floats(props, plugin, "velocity", 3 * n, 0.0),
+                  "dynamic": read_floats(props, plugin, "dynamic", n, 0.0)}
+        if not np.all(np.isin(values["dynamic"], (0.0, 1.0))):
+            raise PropertyError(f"{plugin}: property 'dynamic' must hold 0 or 1 per box")
+        # from Python lists: Dr.Jit-owned memory (a NumPy buffer's alignment can enter kernel hashes)
+        self.params: dict[str, mi.Float] = {k: mi.Float(v.astype(np.float32).tolist()) for k, v in values.items()}
+        self.residual = None
+        seed = read_int(props, plugin, "residual_seed", 0, 0)
+        if read_bool(props, plugin, "residual", False) and n:
+            self.residual = ResidualField(n, ResidualConfig(seed=seed))
+        #: Whether the residual field is evaluated (it exists only with the ``residual`` property).
+        self.use_residual = self.residual is not None
 
     # -- parameters ------------------------------------------------------------------------
     def traverse(self, cb: mi.TraversalCallback) -> None:
-        diff = mi.ParamFlags.Differentiable
-        for k in ("box_dims", "box_centre", "box_yaw", "box_velocity"):
-            cb.put(k, self.params[k], diff)
-        cb.put("box_dynamic", self.params["box_dynamic"], mi.ParamFlags.NonDifferentiable)
+        """Put every box parameter and, with the residual field, its parameters."""
+        for name, _, differentiable in BOX_PARAMETERS:
+            cb.put(name, self.params[name],
+                   mi.ParamFlags.Differentiable if differentiable else mi.ParamFlags.NonDifferentiable)
         if self.residual is not None:
             for k, v in self.residual.params.items():
-                cb.put(f"rdf_{k}", v, diff)
+                cb.put(RESIDUAL_PREFIX + k, v, mi.ParamFlags.Differentiable)
 
-    def set_param(self, key: str, value) -> None:
-        if key in self.params:
-            self.params[key] = value
-        elif key.startswith("rdf_") and self.residual is not None:
-            self.residual.params[key[4:]] = value
-        else:
-            raise KeyError(key)
+    def check_parameters(self) -> None:
+        """Raise a :class:`~vsrd_plugins.properties.PropertyError` naming a box parameter whose
+        width no longer fits the box count (after an assignment through ``mi.traverse``)."""
+        for name, per_box, _ in BOX_PARAMETERS:
+            width = dr.width(self.params[name])
+            if width != per_box * self.n:
+                raise PropertyError(f"{self.plugin}: parameter '{name}' has {width} values, expected "
+                                    f"{per_box * self.n} ({per_box} per box, {self.n} boxes)")
 
     @property
     def residual_reach(self) -> float:
         """Largest amount by which the residual can raise an instance SDF (0 when off)."""
         return self.residual.cfg.max_residual if (self.use_residual and self.residual) else 0.0
 
-    # -- decoding ----------------------------------------------------------------------------
+    # -- boxes -------------------------------------------------------------------------------
     def decode(self) -> DecodedBoxes:
-        n, r = self.n, self.ranges
-        idx = [dr.arange(mi.UInt32, n) * 3 + j for j in range(3)]
-        raw_d = [dr.gather(mi.Float, self.params["box_dims"], i) for i in idx]
-        raw_c = [dr.gather(mi.Float, self.params["box_centre"], i) for i in idx]
-        half = [r.half_lo[j] + (r.half_hi[j] - r.half_lo[j]) * sigmoid(raw_d[j]) for j in range(3)]
-        centre = [r.centre_lo[j] + (r.centre_hi[j] - r.centre_lo[j]) * sigmoid(raw_c[j])
-                  for j in range(3)]
-        i2 = dr.arange(mi.UInt32, n) * 2
-        yc = dr.gather(mi.Float, self.params["box_yaw"], i2)
-        ys = dr.gather(mi.Float, self.params["box_yaw"], i2 + 1)
-        norm = dr.safe_sqrt(yc * yc + ys * ys)
-        ok = norm > 1e-8
-        inv = 1.0 / dr.select(ok, norm, 1.0)
-        cos = dr.select(ok, yc * inv, 1.0)
-        sin = dr.select(ok, ys * inv, 0.0)
-        vel = [dr.gather(mi.Float, self.params["box_velocity"], i) for i in idx]
-        return DecodedBoxes(half, centre, cos, sin, vel, mi.Float(self.params["box_dynamic"]))
+        """The boxes as per-axis width-N arrays (half extents, ``cos`` / ``sin`` of the yaw),
+        differentiable w.r.t. the parameters."""
+        idx = [dr.arange(mi.UInt32, self.n) * 3 + j for j in range(3)]
+        half = [0.5 * dr.gather(mi.Float, self.params["size"], i) for i in idx]
+        centre = [dr.gather(mi.Float, self.params["centre"], i) for i in idx]
+        vel = [dr.gather(mi.Float, self.params["velocity"], i) for i in idx]
+        sin, cos = dr.sincos(self.params["yaw"])
+        return DecodedBoxes(half, centre, cos, sin, vel, mi.Float(self.params["dynamic"]))
+
+    def boxes(self) -> dict[str, np.ndarray]:
+        """The box parameters as NumPy arrays: ``centre`` (N, 3), ``size`` (N, 3), ``yaw`` (N,),
+        ``velocity`` (N, 3), ``dynamic`` (N,)."""
+        return {name: np.array(dr.detach(self.params[name]), dtype=np.float64).reshape((self.n, 3) if per_box == 3
+                                                                                          else (self.n,))
+                for name, per_box, _ in BOX_PARAMETERS}
 
     def view(self, dec: DecodedBoxes, k: int, time: mi.Float, width: int) -> BoxView:
         """Instance ``k`` broadcast to ``width`` lanes at per-lane ray time ``time``."""
@@ -115,18 +116,6 @@ class InstanceField:
         m = g(dec.dynamic) * time
         centre = mi.Point3f(*[g(dec.centre[j]) + m * g(dec.velocity[j]) for j in range(3)])
         return BoxView(mi.Vector3f(*[g(h) for h in dec.half]), centre, g(dec.cos), g(dec.sin))
-
-    def numpy_boxes(self) -> dict[str, np.ndarray]:
-        """Decoded parameters as NumPy: centres (N,3), sizes (N,3), yaws (N,), velocities, dynamic."""
-        with dr.suspend_grad():
-            dec = self.decode()
-            return {
-                "centres": np.stack([np.array(c) for c in dec.centre], 1).reshape(self.n, 3),
-                "sizes": 2.0 * np.stack([np.array(h) for h in dec.half], 1).reshape(self.n, 3),
-                "yaws": np.arctan2(np.array(dec.sin), np.array(dec.cos)).reshape(self.n),
-                "velocities": np.stack([np.array(v) for v in dec.velocity], 1).reshape(self.n, 3),
-                "dynamic": np.array(dec.dynamic).reshape(self.n),
-            }
 
     # -- evaluation --------------------------------------------------------------------------
     def residual_weights(self) -> mi.TensorXf | None:
@@ -183,7 +172,7 @@ class InstanceField:
         gradient it knows to vanish.
         """
         if grad_reach is None:
-            f = self._lane_sdfs_ad(dec, p, time, inst, weights, reach)
+            f = self.lane_sdfs_ad(dec, p, time, inst, weights, reach)
         else:
             with dr.suspend_grad():
                 bv = self.view_lanes(dec, inst, time)
@@ -249,7 +238,7 @@ class InstanceField:
             dr.eval(extra)  # one kernel per instance: pending scatters of equal width share one
         return extra
 
-    def _lane_sdfs_ad(self, dec: DecodedBoxes, p: mi.Point3f, time: mi.Float, inst: mi.UInt32,
+    def lane_sdfs_ad(self, dec: DecodedBoxes, p: mi.Point3f, time: mi.Float, inst: mi.UInt32,
                       weights: mi.TensorXf | None, reach: float | mi.Float) -> mi.Float:
         """Differentiable box SDF (+ residual under the ``reach`` rule) of one instance per lane."""
         bv = self.view_lanes(dec, inst, time)

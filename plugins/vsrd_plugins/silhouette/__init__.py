@@ -1,79 +1,93 @@
-r"""Instance-aware NeuS silhouette integrator (``vsrd_silhouette``).
+r"""Instance-aware NeuS silhouette integrator (``vsrd_silhouette``): soft instance labels of boxes
+(plus an optional learned residual shape per box) along camera rays, differentiable w.r.t. the
+boxes.
 
 .. pluginparameters::
 
- * - num_instances, centres, sizes, yaws, velocities, dynamic
-   - |int|, |string|
-   - The boxes (see :func:`vsrd_plugins.sdf.instance_properties`). Ray time is the frame offset
-     used to move dynamic boxes: ``centre(t) = centre + dynamic * velocity * t``.
+ * - centre
+   - |string| or floats
+   - Box centres in the scene frame, 3 numbers per box (scene units, e.g. m). The number of
+     boxes ``N`` is their count / 3; without ``centre`` the scene has no boxes.
+ * - size
+   - |string| or floats
+   - Full box extents (width, height, length) along the box-local x, y, z axes, 3 numbers per
+     box, each > 0 (scene units). Required with ``centre``.
+ * - yaw
+   - |string| or floats
+   - Rotation of each box about the scene's +y axis (radians); a box's length axis points along
+     ``(sin yaw, 0, cos yaw)``. (Default: 0)
+ * - velocity
+   - |string| or floats
+   - Velocity of each box, 3 numbers per box (scene units per unit of ray time: per frame when
+     the sensors' ray time is the frame offset). (Default: 0)
+ * - dynamic
+   - |string| or floats
+   - Per box 1 (moves: its centre at ray time ``t`` is ``centre + velocity * t``) or 0 (static).
+     (Default: 0)
  * - residual
    - |bool|
-   - Add the hypernetwork residual distance field to every box SDF. (Default: false)
- * - residual_seed, residual_shift, residual_gradients
-   - |int|, |float|, |string|
-   - The residual field's initialisation seed and output shift, and how its gradients are
-     computed: ``fused`` (hand-written derivatives around one cooperative-vector kernel, LLVM) or
-     ``tensor`` (Dr.Jit AD through tensor-mode matmuls, the reference). (Default: 0, 3, fused)
+   - Add the learned residual distance field (a hypernetwork MLP per box, bounded by 1 scene
+     unit, inside each box) to every box SDF. (Default: false)
+ * - residual_seed
+   - |int|
+   - Seed of the residual field's initial weights. (Default: 0)
  * - sampling
    - |string|
-   - ``adaptive`` (default) or ``dense`` (paper-faithful reference, see below).
- * - sharpness, temperature
-   - |float|
-   - NeuS sharpness ``s`` (1/m) and softmin temperature ``tau`` (m). Exposed by ``traverse()`` as
-     opaque non-differentiable values: changing them each step does not recompile.
-     (Default: 10, 0.1)
- * - band_samples, max_bands, reach
-   - |int|, |int|, |float|
-   - Adaptive sampling: ``K`` samples per band, at most ``B`` bands (instances) per ray (0: no
-     limit), band half-width ``reach / s`` and culling margin ``reach * max(1/s, tau)``.
-     (Default: 16, 0, 8)
- * - residual_scan, residual_golden, residual_tail, residual_tail_scan
+   - ``adaptive`` (bands of samples around each box a ray meets) or ``dense`` (the paper's
+     stratified + importance samples over ``[near, far]``, a slow reference). (Default: adaptive)
+ * - band_samples
    - |int|
-   - Adaptive sampling with the residual: points scanned per band for the least ``B + R``
-     along the ray, golden-section steps refining it (0 scan points: use the box's least
-     ``B``), tail samples per band covering the rest of the box's chord, where ``B + R``
-     can dip again (0: none), and detached scan points per band and tail sample that move
-     the samples to the local extrema of ``B + R`` they find (0: none). (Default: 4, 0, 12, 3)
- * - residual_grid, residual_lattice
+   - Samples per band of the adaptive sampler, >= 2. (Default: 16)
+ * - sharpness
    - |float|
-   - Adaptive sampling with the residual: the scans above and the detached values that sort
-     samples into frozen and not (see ``residual_sparse_gradients``) read ``R`` interpolated
-     from exact values on a grid along each band's chord, spaced ``residual_grid`` radians of the
-     encoding's highest frequency apart (0: evaluate ``R`` at every scan point and sample).
-     Where a ray batch is dense enough that tabulating ``R`` per instance costs less, those
-     grid values come from a box-local lattice spaced ``residual_lattice`` radians apart
-     (tricubic; 0: never). (Default: 0.35, 0.35)
- * - residual_sparse_gradients
-   - |bool|
-   - Adaptive sampling with the residual: samples strictly inside a monotone run of the scene
-     SDF with one instance near keep their values but leave the AD graph (their derivative
-     vanishes; see below). (Default: true)
- * - isolated_rays, isolated_band_samples, isolated_extrema
-   - |bool|, |int|, |int|
-   - Adaptive sampling: rays whose enlarged boxes are disjoint along them get
-     ``isolated_band_samples`` band samples per box instead of ``K`` (without the residual
-     field), or their bands' anchors and the extrema of ``B + R`` along them (with it, where a
-     band has at most ``isolated_extrema`` extrema and the batch has enough such rays to pay
-     for their sample groups), and evaluate only that box at them (see below). (Default: true,
-     1, 3)
- * - coarse_samples, fine_samples
-   - |int|
-   - Dense sampling: stratified coarse and importance fine sample counts. (Default: 100, 100)
- * - ridge_gradients
-   - |bool|
-   - Give each ray's deepest sample inside a box the envelope gradient of the box's minimum
-     along the ray instead of AD's one-sided gradient of the max over faces (see below; values
-     are unchanged). (Default: true)
- * - near, far
+   - NeuS sharpness ``s`` (1 / scene unit), > 0: labels blur over about ``1/s``. (Default: 10)
+ * - temperature
    - |float|
-   - Integration range along each ray. (Default: 0, 100)
+   - Softmin temperature ``tau`` (scene units), > 0, between the labels of boxes that meet.
+     (Default: 0.1)
+ * - near
+   - |float|
+   - Start of the integration range along each ray (scene units), >= 0. (Default: 0)
+ * - far
+   - |float|
+   - End of the integration range, > ``near``. (Default: 100)
 
-Every box parameter (``vsrd.box_dims``, ``vsrd.box_centre``, ``vsrd.box_yaw``,
-``vsrd.box_velocity``), the residual field's embedding and hypernetwork weights
-(``vsrd.rdf_*``) and the schedule values (``vsrd.sharpness``, ``vsrd.temperature``) appear in
-``mi.traverse(scene)`` when the integrator has ``id="vsrd"``.
+List-valued properties are strings of numbers (space- or comma-separated, as XML has them),
+Dr.Jit arrays (``mi.Float(values)``, ``mi.TensorXf(array)``) or, in ``mi.load_dict``, a tuple
+of three numbers for one box's centre or size. Mitsuba's dictionary parser refuses other Python
+lists and NumPy arrays before a plugin sees them: :func:`vsrd_plugins.box_properties` turns
+them into strings. A value of the wrong type, count or range raises a
+:class:`~vsrd_plugins.properties.PropertyError` naming the property.
 
-The integral, both samplers and the residual search are described in ``docs/integrators.md``.
+``mi.traverse(scene)`` lists, for an integrator with ``id="vsrd"``: ``vsrd.centre``,
+``vsrd.size``, ``vsrd.yaw``, ``vsrd.velocity`` (differentiable, the units above),
+``vsrd.dynamic``, ``vsrd.sharpness`` and ``vsrd.temperature`` (opaque: changing them every step
+compiles nothing anew) and, with the residual field only, its embedding and hypernetwork
+weights ``vsrd.rdf_*``. :meth:`VSRDSilhouetteIntegrator.boxes` reads the boxes back as NumPy.
+Internal tuning (band reach, residual search, isolated rays, ...) is a
+:class:`~vsrd_plugins.silhouette.settings.SilhouetteSettings` on ``integrator.settings``.
+
+``mi.render`` returns ``3 + N + 1`` channels per pixel: RGB (each box's colour,
+:func:`~vsrd_plugins.common.instance_colours`, weighted by its label), then the AOVs
+``label_0`` ... ``label_{N-1}`` (the soft label of each box, in box order) and ``background``
+(``1 - sum`` of the labels). :meth:`VSRDSilhouetteIntegrator.render_rays` renders any batch of
+rays (one launch for many cameras) and returns the ``N + 1`` labels.
+
+.. code-block:: python
+
+    import drjit as dr, mitsuba as mi, numpy as np
+    mi.set_variant("llvm_ad_rgb")
+    import vsrd_plugins
+    vsrd_plugins.register()
+    scene = mi.load_dict({"type": "scene",
+        "sensor": {"type": "perspective", "fov": 60, "film": {"type": "hdrfilm", "width": 64, "height": 48}},
+        "integrator": {"type": "vsrd_silhouette", "id": "vsrd",
+                       **vsrd_plugins.box_properties(centre=[[0, 0, 8]], size=[[1.8, 1.5, 4.2]], yaw=[0.3])}})
+    image = mi.render(scene, spp=1)                # (48, 64, 3 + 1 + 1): RGB, label_0, background
+    params = mi.traverse(scene)
+    opt = mi.ad.Adam(lr=0.02, params={"vsrd.centre": params["vsrd.centre"]})
+
+The integral, both samplers and the residual search: ``docs/integrators.md``.
 """
 
 from __future__ import annotations
@@ -82,12 +96,17 @@ from dataclasses import replace
 
 import drjit as dr
 import mitsuba as mi
+import numpy as np
 
 from ..common import instance_colours
+from ..properties import PropertyError, read_float
 from ..sdf import InstanceField
 from .adaptive import render_adaptive
 from .dense import integrate_at, render_dense
-from .settings import SamplingContext, SilhouetteSettings
+from .settings import PLUGIN, SamplingContext, SilhouetteSettings
+
+#: Default NeuS sharpness ``s`` (1 / scene unit) and softmin temperature ``tau`` (scene units).
+DEFAULT_SHARPNESS, DEFAULT_TEMPERATURE = 10.0, 0.1
 
 __all__ = ["VSRDSilhouetteIntegrator", "SilhouetteSettings", "instance_colours"]
 
@@ -97,10 +116,11 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
 
     def __init__(self, props: mi.Properties):
         super().__init__(props)
-        self.field = InstanceField(props)
+        self.field = InstanceField(props, PLUGIN)
         self._settings = SilhouetteSettings.from_props(props)
-        self.sharpness = dr.opaque(mi.Float, float(props.get("sharpness", 10.0)))
-        self.temperature = dr.opaque(mi.Float, float(props.get("temperature", 0.1)))
+        self.sharpness = dr.opaque(mi.Float, read_float(props, PLUGIN, "sharpness", DEFAULT_SHARPNESS, positive=True))
+        self.temperature = dr.opaque(mi.Float, read_float(props, PLUGIN, "temperature", DEFAULT_TEMPERATURE,
+                                                          positive=True))
         #: Rays, samples and (sample, instance) SDF evaluations of the last call.
         self.last_stats: dict[str, int] = {}
 
@@ -123,11 +143,18 @@ class VSRDSilhouetteIntegrator(mi.ad.integrators.common.ADIntegrator):
         cb.put("temperature", self.temperature, mi.ParamFlags.NonDifferentiable)
 
     def parameters_changed(self, keys: list[str]) -> None:
+        """Check the widths of the box parameters and keep ``s`` and ``tau`` opaque."""
+        self.field.check_parameters()
         for k in ("sharpness", "temperature"):
             v = getattr(self, k)
             if dr.width(v) != 1:
-                raise ValueError(f"vsrd_silhouette: {k} must be a single value")
+                raise PropertyError(f"{PLUGIN}: parameter '{k}' must be a single value, got {dr.width(v)}")
             dr.make_opaque(v)
+
+    def boxes(self) -> dict[str, np.ndarray]:
+        """The boxes as NumPy arrays: ``centre`` (N, 3), ``size`` (N, 3), ``yaw`` (N,),
+        ``velocity`` (N, 3) and ``dynamic`` (N,), in the units of the plugin properties."""
+        return self.field.boxes()
 
     def set_schedule(self, sharpness: float, temperature: float) -> None:
         """Set ``s`` and ``tau`` without recompiling kernels."""

@@ -17,7 +17,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from ..common import block_of, compress_wide, concat, golden_argmin, golden_minimum, golden_probes, golden_step, illinois_root, pick
+from ..common import block_of, compress_wide, concat, golden_minimum, illinois_root, pick
 from ..sdf import LATTICE_LOOKUP_COST, ResidualLattice, box_sdf_local, envelope_weight
 from .settings import SamplingContext
 from .slots import KINK_MINIMA, GapPeak, Picked
@@ -396,9 +396,8 @@ def residual_minima(ctx: SamplingContext, sdf, slot_views, count, picked: list[P
     by p99 0.025 with the box's, 6 boxes at s = 10). ``F`` is not convex, so the search
     scans ``residual_scan`` points of a window (the chord ``[entry, exit]`` of a box the
     ray enters, ``[t* - w, t* + w]`` around the box's closest approach otherwise), keeps the
-    least of them and the box's own minimum ``t*``, and refines it by ``residual_golden``
-    golden-section steps between its neighbours. One batched residual evaluation per step
-    (every slot and instance together), outside the AD graph.
+    least of them and the box's own minimum ``t*``: one batched evaluation of ``F`` (every slot
+    and instance together), outside the AD graph.
     """
     cfg = ctx.settings
     n_slots, n = len(slot_views), dr.width(count)
@@ -424,16 +423,4 @@ def residual_minima(ctx: SamplingContext, sdf, slot_views, count, picked: list[P
         better = v < best_v
         best_v, best_i = dr.select(better, v, best_v), dr.select(better, i, best_i)
     t_min = dr.select(best_i == k, ts, dr.fma(step, mi.Float(best_i), a))
-    if cfg.residual_golden > 0:  # refine between the best candidate's neighbours
-        lo = dr.maximum(t_min - step, a)
-        hi = dr.minimum(t_min + step, b)
-        x1, x2 = golden_probes(lo, hi)
-        state = (lo, hi, x1, x2, sdf.full(x1), sdf.full(x2))
-        # unrolled, not golden_section's symbolic loop: the residual MLP runs as tensor-mode
-        # kernels, which cannot be traced inside one
-        for _ in range(cfg.residual_golden):
-            state = golden_step(state, sdf.full)
-            dr.eval(state)
-        f_min = dr.minimum(state[4], state[5])
-        t_min = dr.select(f_min < best_v, golden_argmin(state), t_min)
     return [block_of(t_min, b_, n) for b_ in range(n_slots)]

@@ -19,7 +19,7 @@ from dataclasses import dataclass, field, fields
 import drjit as dr
 import mitsuba as mi
 
-from ..properties import PropertyError, read_bool, read_choice, read_float, read_int
+from ..properties import PropertyError, read_choice, read_float, read_int
 from ..sdf import InstanceField
 
 PLUGIN = "vsrd_silhouette"
@@ -66,8 +66,6 @@ class SilhouetteSettings:
     #: With the residual field: points scanned per band for the least ``B + R`` (0: the band
     #: sits at the box's own minimum, no tails, no moved samples, no chord grid).
     residual_scan: int = 4
-    #: With the residual field: golden-section steps refining the scan's least ``B + R``.
-    residual_golden: int = 0
     #: With the residual search: tail samples per band covering the rest of the enlarged box's
     #: chord, where ``B + R`` can dip again.
     residual_tail: int = 12
@@ -100,7 +98,7 @@ class SilhouetteSettings:
             raise bad("residual_gradients", f"one of {RESIDUAL_GRADIENTS}")
         minimum = {"band_samples": 2, "coarse_samples": 2, "fine_samples": 1, "max_bands": 0, "golden_iterations": 1,
                    "isolated_band_samples": 1, "isolated_extrema": 0, "isolated_group_cost": 0, "residual_scan": 0,
-                   "residual_golden": 0, "residual_tail": 0, "residual_tail_scan": 0}
+                   "residual_tail": 0, "residual_tail_scan": 0}
         for name, low in minimum.items():
             if getattr(self, name) < low:
                 raise bad(name, f">= {low}")
@@ -116,25 +114,25 @@ class SilhouetteSettings:
         return self
 
     @staticmethod
-    def from_props(props: mi.Properties) -> "SilhouetteSettings":
-        """The settings given as plugin properties (the rest at their defaults)."""
+    def from_props(props) -> "SilhouetteSettings":
+        """The settings given as plugin properties (:data:`PROPERTIES`; the rest at their
+        defaults). A setting given as a property raises an error that says how to set it."""
         d = SilhouetteSettings()
-        values = {}
-        for f in fields(SilhouetteSettings):
-            if f.name not in props:
-                continue
-            default = getattr(d, f.name)
-            if f.name == "sampling":
-                values[f.name] = read_choice(props, PLUGIN, f.name, default, SAMPLINGS)
-            elif f.name == "residual_gradients":
-                values[f.name] = read_choice(props, PLUGIN, f.name, default, RESIDUAL_GRADIENTS)
-            elif isinstance(default, bool):
-                values[f.name] = read_bool(props, PLUGIN, f.name, default)
-            elif isinstance(default, int):
-                values[f.name] = read_int(props, PLUGIN, f.name, default)
-            else:
-                values[f.name] = read_float(props, PLUGIN, f.name, default)
-        return SilhouetteSettings(**values).validated()
+        for name in props.keys():
+            if name in INTERNAL:
+                raise PropertyError(f"{PLUGIN}: '{name}' is an internal setting, not a plugin property: set it "
+                                    f"from Python, integrator.settings = dataclasses.replace(integrator.settings, "
+                                    f"{name}=...)")
+        return SilhouetteSettings(
+            sampling=read_choice(props, PLUGIN, "sampling", d.sampling, SAMPLINGS),
+            band_samples=read_int(props, PLUGIN, "band_samples", d.band_samples, 2),
+            near=read_float(props, PLUGIN, "near", d.near, minimum=0.0),
+            far=read_float(props, PLUGIN, "far", d.far, positive=True)).validated()
+
+
+#: The settings that are plugin properties; the others (:data:`INTERNAL`) are set from Python.
+PROPERTIES = ("sampling", "band_samples", "near", "far")
+INTERNAL = tuple(f.name for f in fields(SilhouetteSettings) if f.name not in PROPERTIES)
 
 
 def halves(kk: int) -> tuple[int, int]:
