@@ -29,21 +29,6 @@ def shape_prior_args(weight: float) -> list[str]:
     return [arg for k in SHAPE_PRIOR_FIELDS for arg in ("--set", f"weights.{k}={weight:g}")]
 
 
-def side_by_side_steps(runs: dict, steps: int, warmup: int = 2) -> dict[object, list[float]]:
-    """Seconds of ``steps`` steps of each of ``runs`` (objects with ``step() -> (seconds, ...)``,
-    e.g. :class:`vsrd_mi.bench.integrator.TimedIntegrator`), timed in turn in one loop after
-    ``warmup`` steps each (the second call's layouts can compile too): a noisy machine then
-    slows every run alike."""
-    for run in runs.values():
-        for _ in range(warmup):
-            run.step()
-    times = {key: [] for key in runs}
-    for _ in range(steps):
-        for key, run in runs.items():
-            times[key].append(run.step()[0])
-    return times
-
-
 def write_results(path: Path, doc: str | None, elapsed: float, **fields) -> None:
     """The script's results as JSON: its purpose (the docstring's first paragraph), the command
     line, the elapsed seconds and ``fields``."""

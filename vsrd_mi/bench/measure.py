@@ -12,8 +12,11 @@ derivative of the converged integral.
 
 from __future__ import annotations
 
+import json
+import sys
 import time
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Callable, Iterator
 
 import numpy as np
@@ -331,3 +334,10 @@ def reference_labels(it: VSRDSilhouetteIntegrator, scene: dict, rays, s: float) 
     grid, mm = reference_grid(it.boxes(), np.array(o).T.astype(np.float64), np.array(d).T.astype(np.float64),
                               np.array(t, dtype=np.float64), t_max, m)
     return it.integrate_at(it.field.decode(), dr.arange(mi.UInt32, n), o, d, t, grid, mm)
+
+
+def write_results(path: Path, doc: str | None, elapsed: float, **fields) -> None:
+    """A benchmark's results as JSON: its purpose (the first paragraph of ``doc``), the command
+    line, the elapsed seconds and ``fields``."""
+    path.write_text(json.dumps({"purpose": (doc or "").split("\n\n")[0], "command": " ".join(["vsrd-mi"] + sys.argv[1:]),
+                                "elapsed_seconds": elapsed, **fields}, indent=1) + "\n")
