@@ -1175,3 +1175,41 @@ def test_residual_grid_keeps_the_sparse_gradient():
         grads[sparse] = np.concatenate([np.array(dr.grad(it.field.params[k])) for k in BOX_KEYS])
     rel = np.linalg.norm(grads[True] - grads[False]) / np.linalg.norm(grads[False])
     assert rel <= 2e-3, rel
+
+
+@pytest.mark.parametrize("residual", [False, True])
+def test_changing_one_box_compiles_nothing_after_warm_up(residual):
+    """One box whose centre, size and yaw change every step (through ``mi.traverse`` and by
+    assigning a new array): after the first steps no kernel is new. With one box ``yaw`` holds a
+    single value, which Dr.Jit would bake into the kernels as a literal unless the field keeps it
+    opaque (5 new kernels every step without)."""
+    scene = {"centre": np.array([[0.3, 0.5, 12.0]]), "size": np.array([[1.8, 1.5, 4.2]]), "yaw": np.array([0.4]),
+             "velocity": np.zeros((1, 3)), "dynamic": np.zeros(1)}
+    sc = mi.load_dict(small_scene_dict(scene, residual=residual))
+    params = mi.traverse(sc)
+    rng = np.random.default_rng(2)
+    rays = to_mi(*training_rays(rng, scene, 512))
+    integ = sc.integrator()
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    try:
+        compiles, seen = [], set()
+        for step in range(6):
+            params["vsrd.centre"] = mi.Float((scene["centre"].ravel() + rng.normal(0, 0.05, 3)).tolist())
+            params["vsrd.size"] = mi.Float((scene["size"].ravel() + rng.normal(0, 0.02, 3)).tolist())
+            params.update()
+            integ.field.params["yaw"] = mi.Float([0.4 + 0.01 * step])  # a new (literal) array, as a user may set
+            dr.kernel_history()  # clear
+            keys = ("centre", "size", "yaw")
+            for k in keys:
+                dr.enable_grad(integ.field.params[k])
+            lab = integ.render_rays(*rays)
+            dr.backward(dr.sum(lab[0] * lab[0]))
+            grads = [dr.grad(integ.field.params[k]) for k in keys]
+            dr.eval(grads)
+            compiles.append(new_kernels(seen))
+            for k in keys:
+                integ.field.params[k] = dr.detach(integ.field.params[k])
+            assert all(np.all(np.isfinite(np.array(g))) for g in grads)
+        assert compiles[2:] == [0] * 4, compiles
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, False)

@@ -40,7 +40,8 @@ class DecodedBoxes:
 
 @dataclass
 class BoxView:
-    """One instance's decoded box broadcast to a lane width (full-width gathers, see DRJIT.md)."""
+    """One instance's box broadcast to a lane width (full-width gathers: a width-1 broadcast would
+    reduce its adjoint in a kernel of its own per use, ``docs/integrators.md``, "Kernel shapes")."""
 
     half: mi.Vector3f
     centre: mi.Point3f  # already moved to the lane's ray time

@@ -85,6 +85,9 @@ class InstanceField:
     def decode(self) -> DecodedBoxes:
         """The boxes as per-axis width-N arrays (half extents, ``cos`` / ``sin`` of the yaw),
         differentiable w.r.t. the parameters."""
+        # opaque: with one box, ``yaw`` and ``dynamic`` hold one value each, and Dr.Jit bakes the
+        # value of a width-1 array into the kernels that read it (new kernels for every new yaw)
+        dr.make_opaque(*self.params.values())
         idx = [dr.arange(mi.UInt32, self.n) * 3 + j for j in range(3)]
         half = [0.5 * dr.gather(mi.Float, self.params["size"], i) for i in idx]
         centre = [dr.gather(mi.Float, self.params["centre"], i) for i in idx]

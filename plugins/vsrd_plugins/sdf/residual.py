@@ -30,7 +30,7 @@ from .mlp import (FusedResidual, bucket_width, gelu, layer_norm_and_scale, layer
 
 @dataclass(frozen=True)
 class ResidualConfig:
-    """Architecture of the residual distance field (REFERENCE §2 defaults)."""
+    """Architecture of the residual distance field (the paper's sizes, see the module docstring)."""
 
     embedding_dim: int = 256
     hyper_width: int = 256
@@ -185,7 +185,7 @@ class ResidualField:
         and reads every layer's activations); where the weights or the points need a gradient it
         runs inside :class:`FusedResidual`, whose backward pass is written out (a coop matvec
         uses one weight matrix per kernel, and Dr.Jit's own coop backward accumulates the weight
-        gradient with atomics: DRJIT.md measured it 2-3x slower than tensor mode). Elsewhere,
+        gradient with atomics, 2-3x slower than tensor mode on x86, ``docs/integrators.md``). Elsewhere,
         or with ``gradients="tensor"``, each group runs as tensor-mode matmuls
         (:meth:`evaluate_tensor`).
         """

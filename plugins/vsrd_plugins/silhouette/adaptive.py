@@ -125,9 +125,9 @@ def render_adaptive(ctx: SamplingContext, dec, o, d, time) -> list[mi.Float] | N
 
 def grid_values(ctx: SamplingContext, dec, grid: ChordGrid, pairs: mi.UInt32, s: mi.Float, p: mi.Point3f,
                 time: mi.Float, inst: mi.UInt32, groups: list[SampleGroup], deep: mi.UInt32, weights, kw: dict) -> mi.Float:
-    """Detached SDF values of :meth:`_render_adaptive`'s lanes (``pairs``: each lane's (slot,
+    """Detached SDF values of :func:`render_adaptive`'s lanes (``pairs``: each lane's (slot,
     ray) pair of ``grid``; ``s``: its ray parameter; ``p``, ``time``, ``inst``: its point,
-    ray time and instance) for :meth:`_frozen_lanes`: ``B`` exact and ``R`` interpolated from
+    ray time and instance) for :func:`frozen_lanes`: ``B`` exact and ``R`` interpolated from
     the chord grid, exact where it can matter.
 
     A frozen lane's value drops out of the integral (it lies strictly inside a monotone run
@@ -136,7 +136,7 @@ def grid_values(ctx: SamplingContext, dec, grid: ChordGrid, pairs: mi.UInt32, s:
     the AD graph. So the interpolated values sort the lanes with a margin of
     :data:`GRID_TOLERANCE` (above the interpolation error: p99 5e-5 m, p9999 9e-4 m at the
     samples), the lanes that stay in the graph under it and their neighbours (whose order
-    against them decides where a run ends) get exact values, and :meth:`_render_adaptive`
+    against them decides where a run ends) get exact values, and :func:`render_adaptive`
     sorts the lanes again with them. With the plain margin a shallow extremum of the
     exact ``B + R`` that the interpolation smooths out stayed frozen: sparse vs full-graph
     box gradient 4.2e-2 relative on the benchmark's 3-box scene, now 3.4e-4 (exact values
@@ -159,8 +159,8 @@ def grid_values(ctx: SamplingContext, dec, grid: ChordGrid, pairs: mi.UInt32, s:
 
 
 def run_ends(frozen: mi.Bool, groups: list[SampleGroup]) -> mi.Bool:
-    """Lanes of :meth:`_render_adaptive`'s flat layout that are not ``frozen``
-    (:meth:`_frozen_lanes`) or neighbour such a lane along their ray."""
+    """Lanes of :func:`render_adaptive`'s flat layout that are not ``frozen``
+    (:func:`frozen_lanes`) or neighbour such a lane along their ray."""
     border = dr.zeros(mi.Bool, dr.width(frozen))
     start = 0
     for grp in groups:
@@ -179,7 +179,7 @@ def run_ends(frozen: mi.Bool, groups: list[SampleGroup]) -> mi.Bool:
 
 def frozen_lanes(ctx: SamplingContext, values: mi.Float, groups: list[SampleGroup], deep: mi.UInt32,
                  tolerance: float = MONOTONE_TOLERANCE) -> mi.Bool:
-    """Lanes of :meth:`_render_adaptive`'s flat layout whose SDF value cannot carry a
+    """Lanes of :func:`render_adaptive`'s flat layout whose SDF value cannot carry a
     gradient of the integral (detached ``values`` of every lane in).
 
     The opacity telescopes over each monotone run of the scene SDF ``f`` along a ray:

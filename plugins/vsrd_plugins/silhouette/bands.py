@@ -145,7 +145,7 @@ def adaptive_bands(ctx: SamplingContext, dec, o, d, time) -> Bands:
             # two-sided band around c, covering the descent in f from the enlarged box's
             # entry (f >= w there) to c: hits then run to c + w and the deepest point,
             # misses to the enlarged box's exit (f >= w again). Spaced in t, crowding mildly
-            # towards c (see _sub_sample), which is close to uniform in f for a box; grazing
+            # towards c (see slots.sub_sample), which is close to uniform in f for a box; grazing
             # rays get long but complete bands.
             lo = e0
             mid = dr.maximum(c, lo)
@@ -249,8 +249,8 @@ def lengthwise_miss(ctx: SamplingContext, hit: mi.Bool, e0: mi.Float, c: mi.Floa
 
 def isolated_rays(ctx: SamplingContext, picked: list[Picked], count: mi.UInt32) -> mi.Bool:
     """Rays whose enlarged-box intervals are pairwise disjoint (none when ``isolated_rays``
-    is off; with the residual field :meth:`_adaptive_bands` keeps only those whose bands have
-    few extrema of ``B + R``, :meth:`_chord_extrema`).
+    is off; with the residual field :func:`adaptive_bands` keeps only those whose bands have
+    few extrema of ``B + R``, :func:`~.extrema.chord_extrema`).
 
     Then at every sample of a band every other instance lies beyond its culling margin, so
     its softmin share is below ``exp(-reach)`` and the band's labels are its opacity; and

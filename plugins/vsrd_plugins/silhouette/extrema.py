@@ -30,14 +30,14 @@ EXTREMUM_SCAN = 2
 
 
 def snapped_slots(ctx: SamplingContext, sdf, slots: list[Slot], minima: list[tuple]) -> list[list[list[mi.Float]]]:
-    """Moved positions of every slot's samples in the order :meth:`_sub_bands` reads them: the first
+    """Moved positions of every slot's samples in the order :func:`~.layout.sub_bands` reads them: the first
     tail's ``kp`` in ``(hi, extra)``, the second tail's ``kq`` in ``(extra, tail end]``, the
     band's first half's ``K/2 - 1`` in ``(lo, mid)`` (its last sample, the centre, stays)
     and its second half's ``K/2 - 1`` in ``(mid, hi)`` (its last sample stays too: where a
     hit band ends at its least ``B + R``, that is ``hi``, and a maximum just before it took
     the sample when it could move: trained fields, labels off by 0.05); per part a list (slot) of lists
     (sample) of arrays (ray). ``minima``: the minima of each (slot, ray) pair's ``F`` at
-    the kinks and bends of its ``B`` (:meth:`_kink_minima`)."""
+    the kinks and bends of its ``B`` (:func:`~.residual_search.kink_minima`)."""
     kp, kq = ctx.tail_samples()
     k1, k2 = halves(ctx.settings.band_samples)
     lo, mid, hi, extra, tail = ([getattr(sl, name) for sl in slots]
@@ -53,7 +53,7 @@ def snapped_slots(ctx: SamplingContext, sdf, slots: list[Slot], minima: list[tup
 def snapped_positions(sdf: PairScan, starts: list[mi.Float], ends: list[mi.Float], k_sub: int, k: int, scan: int,
                       dense_at_b: bool = False, kinks: list[tuple[mi.Float, ...]] = ()) -> list[list[mi.Float]]:
     """Per slot the positions of the first ``k`` samples of the sub-band ``(starts[b],
-    ends[b]]`` of ``k_sub`` samples (:meth:`_sub_sample`), moved to the local extrema of
+    ends[b]]`` of ``k_sub`` samples (:func:`~.slots.sub_sample`), moved to the local extrema of
     ``F = B + R`` (detached; ``sdf``: the :class:`PairScan` of the pairs).
 
     Along a ray that runs close to a face, ``B + R`` has several shallow local minima and
@@ -62,13 +62,13 @@ def snapped_positions(sdf: PairScan, starts: list[mi.Float], ends: list[mi.Float
     (integrator benchmark's 12-box residual scene: labels max 0.0227 with 12 tail samples,
     0.0117 with 32; moved, 3 scan points per sample: 0.0055 with 12). Sample ``i``
     owns the cell between its nominal position and its predecessor's
-    (:meth:`_sub_sample`); ``residual_tail_scan`` points per cell (the last at the nominal
+    (:func:`~.slots.sub_sample`); ``residual_tail_scan`` points per cell (the last at the nominal
     position) are scanned, over the cells of the ``k`` moved samples and, where ``k <
     k_sub``, the fixed next sample's. Every scan point that is a local extremum of the scan
     (by more than :data:`SNAP_PROMINENCE`) places a sample between its two neighbours
-    (:meth:`_refined_extrema`: golden-section steps; the vertex of the parabola through
+    (:func:`refined_extrema`: golden-section steps; the vertex of the parabola through
     the three missed the extrema of trained residual fields by up to 0.14 m); ``kinks`` (per pair, ascending, with ``F`` there,
-    :meth:`_kink_minima`), the minima of ``F`` at kinks and sharp bends of ``B``, place one
+    :func:`~.residual_search.kink_minima`), the minima of ``F`` at kinks and sharp bends of ``B``, place one
     each exactly (a search across a kink misses it by up to a cell), as the event of the
     scan point before it where that has no extremum, else of the one after it (a second
     kink in one scan interval goes without), and the scan sees them as points of its own: an extremum
@@ -79,12 +79,12 @@ def snapped_positions(sdf: PairScan, starts: list[mi.Float], ends: list[mi.Float
     fewer than ``q - j`` samples for the extrema after it, or a later one where its own is
     taken; the samples no extremum took keep their nominal places, clipped between the
     taken ones around them, so the samples stay sorted (the tails do, and the rank merge of
-    :meth:`_adaptive_groups` holds). Random 2-3-box scenes (256 rays, seeds 40-299): scenes
+    :func:`~.layout.adaptive_groups` holds). Random 2-3-box scenes (256 rays, seeds 40-299): scenes
     with a label above 0.01 19 -> 9 of 260, worst 0.039 -> 0.019, against one sample per
     cell that took its cell's largest extremum and lent its runner-up to a free neighbour
     (which left a cell with two extrema, a cell holding the deepest point, or extrema
     crowding one end of a sub-band with one sample short); with the kinks, bends and
-    residual peaks none of the 260 (README, "Kinks, bends and peaks").
+    residual peaks none of the 260 (``docs/integrators.md``, "What each feature buys").
     """
     per = scan
     n_slots, n = len(starts), dr.width(starts[0])
@@ -114,7 +114,7 @@ def snapped_positions(sdf: PairScan, starts: list[mi.Float], ends: list[mi.Float
     values = sdf(flat, len(ts))
     v = [sdf.spread(values, i) for i in range(len(ts))]
     # the local extrema of the scan and the kinks of B where F has a local minimum (see
-    # _kink_minima; exact, where a search between the scan points on either side would miss them), in
+    # residual_search.kink_minima; exact, where a search between the scan points on either side would miss them), in
     # order along the ray: the j-th of q takes the first sample after the last one taken,
     # at its own cell's unless that would leave too few samples for the q - j after it.
     # A kink on the fixed samples around the cells (the deepest point, a band's centre)
@@ -158,7 +158,7 @@ def snapped_positions(sdf: PairScan, starts: list[mi.Float], ends: list[mi.Float
                 x2, f2 = dr.select(right, kt, x2), dr.select(right, kf, f2)
             extremum = ((f1 > f0) & (f1 >= f2)) | ((f1 < f0) & (f1 <= f2))
             extremum &= dr.maximum(dr.abs(f1 - f0), dr.abs(f1 - f2)) > SNAP_PROMINENCE
-            # placed between x0 and x2 once taken (_refined_extrema)
+            # placed between x0 and x2 once taken (refined_extrema)
             sign = dr.select(extremum & ~event, dr.select(f1 > f0, 1, -1), sign)
             b_lo, b_hi = x0, x2
             event |= extremum
@@ -240,7 +240,7 @@ def worth_isolating(ctx: SamplingContext, isolated: mi.Bool, count: mi.UInt32, n
     """With the residual field, ``isolated`` where the batch's isolated rays together pay for
     their sample groups, else no ray, and which of the two: a group costs a fixed
     ``isolated_group_cost`` on top of its samples, and an isolated band saves the full
-    layout's samples minus its own (:meth:`_extremum_samples`). (6 boxes, 1000 rays: 10 %
+    layout's samples minus its own (:func:`extremum_samples`). (6 boxes, 1000 rays: 10 %
     slower with the isolated rays in groups of their own; 16k rays 25 % faster.) Decided
     for the batch as a whole, not per band count: a band count whose isolated group came
     and went from step to step compiled its kernels at the first step it came.
@@ -257,8 +257,8 @@ def worth_isolating(ctx: SamplingContext, isolated: mi.Bool, count: mi.UInt32, n
 def extremum_samples(sl: Slot, extrema: list[mi.Float]) -> tuple:
     """An isolated ray's samples of a band after its entry, with the residual field: its
     anchors (:data:`ISOLATED_ANCHORS`), the extrema of ``B + R`` along the chord
-    (:meth:`_chord_extrema`; ``-1``: none) and its minima at kinks and bends of ``B``
-    (:attr:`Slot.kinks`, :meth:`_kink_minima`; :data:`KINK_MINIMA` of them), sorted (the
+    (:func:`chord_extrema`; ``-1``: none) and its minima at kinks and bends of ``B``
+    (:attr:`Slot.kinks`, :func:`~.residual_search.kink_minima`; :data:`KINK_MINIMA` of them), sorted (the
     exit stands in for missing ones).
 
     On an isolated ray every other box is beyond its culling margin at the band's samples,
@@ -276,14 +276,14 @@ def chord_extrema(ctx: SamplingContext, grid: ChordGrid, scan: mi.Bool,
     """Per (slot, ray) pair of ``grid`` where ``scan`` holds: the first ``isolated_extrema``
     local extrema of ``F = B + R`` along its chord (``-1`` past the last) and how many there
     are (detached; 0 and ``-1`` elsewhere). ``kinks``: per pair the minima of ``F`` at kinks
-    of ``B`` (ascending, ``-1`` for none; :meth:`_kink_minima`).
+    of ``B`` (ascending, ``-1`` for none; :func:`~.residual_search.kink_minima`).
 
     ``F`` (``B`` exact, ``R`` interpolated, :class:`ChordGrid`) is scanned at
     :data:`EXTREMUM_SCAN` points per grid cell and at the kinks, in order; an extremum
     counts once ``F`` has moved away from it by :data:`SNAP_PROMINENCE` (hysteresis: a flat
     extremum counts as well as a sharp one, the chord grid's wiggles do not), and
     :data:`KINK_GOLDEN` golden-section steps between the scan points around it place it.
-    The moved samples of the full layout (:meth:`_snapped_positions`) take an extremum only
+    The moved samples of the full layout (:func:`snapped_positions`) take an extremum only
     where it differs from a neighbouring scan point by the prominence: a flat maximum
     between two minima went unseen there and was covered by the band's other samples, which
     an isolated band does not have (labels off by 0.009 on the integrator benchmark's 6-box

@@ -113,7 +113,7 @@ def integrate(sdfs: list[mi.Float], m: int, sharpness: mi.Float, temperature: mi
                peak: tuple[mi.UInt32, mi.UInt32, mi.Float] | None = None) -> list[mi.Float]:
     """Differentiable NeuS integral of instance SDFs at ``m`` sorted samples per ray
     (``peak``: per lane the indices ``a, b`` of two instances crossing at a gap peak and the envelope
-    weight of ``a``, ``-1`` for none, see :meth:`_gap_peaks`)."""
+    weight of ``a``, ``-1`` for none, see :func:`~.bands.gap_peaks`)."""
     n = dr.width(sdfs[0]) // m
     with dr.suspend_grad():
         lane = dr.arange(mi.UInt32, n * m)
@@ -148,7 +148,7 @@ def log_transmittance(s, f, f_next, last: mi.Bool, m: int) -> tuple[mi.Float, mi
 
 def interval_weights(s, f, f_next, last: mi.Bool, m: int) -> tuple[mi.Float, mi.Float]:
     """NeuS weights ``w_i = T_i alpha_i`` of the intervals between each sample and the next
-    and ``log(1 - alpha_i)`` (:meth:`_log_transmittance`)."""
+    and ``log(1 - alpha_i)`` (:func:`log_transmittance`)."""
     log_t, log1ma = log_transmittance(s, f, f_next, last, m)
     return dr.exp(log_t) - dr.exp(log_t + log1ma), log1ma
 

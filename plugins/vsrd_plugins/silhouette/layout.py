@@ -22,10 +22,10 @@ from .slots import SampleGroup, Slot, band_layout, count_before, sub_sample
 
 def sub_bands(sl: Slot, kk: int, kp: int, kq: int, snapped: bool, extrema: bool = False) -> list[tuple]:
     """A band's runs of samples between its entry and its extra sample and after it (see
-    :meth:`_adaptive_groups`), as ``(first index in the band, count, value(i), counter(before))``:
+    :func:`adaptive_groups`), as ``(first index in the band, count, value(i), counter(before))``:
     ``value`` gives the ``i``-th (1-based) sample, ``counter`` how many of them satisfy
-    ``before`` (a prefix). From :meth:`_sub_sample`'s formula, or from the positions
-    :meth:`_snapped_slots` moved (``snapped``; :attr:`Slot.moved`), or, for an isolated
+    ``before`` (a prefix). From :func:`~.slots.sub_sample`'s formula, or from the positions
+    :func:`~.extrema.snapped_slots` moved (``snapped``; :attr:`Slot.moved`), or, for an isolated
     ray with the residual field (``extrema``), one run of every sample after the entry
     (:attr:`Slot.isolated`)."""
     lo, mid, hi, ex = sl.lo, sl.mid, sl.hi, sl.extra
@@ -67,12 +67,12 @@ def sub_bands(sl: Slot, kk: int, kp: int, kq: int, snapped: bool, extrema: bool 
 
 def adaptive_groups(ctx: SamplingContext, bands: Bands) -> Iterator[SampleGroup]:
     """Sample positions for the adaptive strategy, one group per band count and layout
-    (isolated rays, :meth:`_isolated`, get ``isolated_band_samples`` instead of ``K``).
+    (isolated rays, :func:`~.bands.isolated_rays`, get ``isolated_band_samples`` instead of ``K``).
 
     Yields a :class:`SampleGroup` ``(rays, t, m, active, inst, deepest, peak, own)``: rays with exactly ``g`` bands get
     ``m = g (K + 3 + T)`` samples (entry, ``K`` band samples, the first tail, closest approach /
     exit, the second tail, and the scene SDF's peak before the next band, per band; ``T`` tail
-    samples only with the residual search, :meth:`_tail_samples`), merged in order by rank: a
+    samples only with the residual search, :meth:`~.settings.SamplingContext.tail_samples`), merged in order by rank: a
     sample's index in its band plus, per other band, how many of that band's samples come
     before it (a binary search: bands are internally sorted), so no per-ray sort is needed.
     ``active`` masks the padding copy of a single-ray group; ``inst`` holds the ``g`` band instances of
@@ -86,7 +86,7 @@ def adaptive_groups(ctx: SamplingContext, bands: Bands) -> Iterator[SampleGroup]
                                                             bands.hit, bands.isolated)
     if not slots:
         return
-    # samples moved to the extrema of B + R (:meth:`_snapped_slots`) are data, not
+    # samples moved to the extrema of B + R (:func:`~.extrema.snapped_slots`) are data, not
     # formulas: :attr:`Slot.moved` holds them (the full-band layout only)
     moved = ctx.snaps()
     # (isolated rays?, K): rays of isolated bands get their own groups with fewer samples
@@ -121,7 +121,7 @@ def adaptive_groups(ctx: SamplingContext, bands: Bands) -> Iterator[SampleGroup]
             # the gap peak after the band (its own one-sample group in the merge)
             is_peak = j == per - 1
             # per band its sub-bands: (first index, samples, values) with values a formula of
-            # the 1-based index or the moved positions (see _snapped_slots)
+            # the 1-based index or the moved positions (see extrema.snapped_slots)
             snap = moved and not iso
             parts = [sub_bands(sl[b], kk, kp, kq, snap, extrema) for b in range(g)]
             t = mi.Float(0.0)

@@ -41,7 +41,7 @@ PEAK_STEPS = 8
 class ChordGrid:
     """Exact residuals ``R`` on a grid over each (slot, ray) pair's enlarged-box chord, and
     ``F = B + R`` from them with ``B`` exact and ``R`` interpolated (Catmull-Rom: C1, exact for
-    quadratics), built by :meth:`VSRDSilhouetteIntegrator._chord_grid` (detached arrays; pairs
+    quadratics), built by :func:`chord_grid` (detached arrays; pairs
     slot-major, ``rays`` per slot)."""
 
     views: tuple  #: per pair the box-local ray origin, direction and half size
@@ -99,8 +99,8 @@ class ChordGrid:
 @dataclass(frozen=True)
 class PairScan:
     """The instance SDF ``F = B + R`` of the valid (slot, ray) pairs for the detached scans of
-    :meth:`VSRDSilhouetteIntegrator._residual_minima` and
-    :meth:`VSRDSilhouetteIntegrator._snapped_positions` (pairs slot-major, as
+    :func:`residual_minima` and
+    :func:`~.extrema.snapped_positions` (pairs slot-major, as
     :class:`ChordGrid`'s). A slot beyond a ray's count of met boxes has nothing to scan: the
     scans run over the valid pairs alone (57 % of the pairs on the 6-box benchmark, 51-53 % at 3
     and 12 boxes), and their results read back as 0 there."""
@@ -239,7 +239,7 @@ def residual_lattice(ctx: SamplingContext, dec, grid_points: int) -> ResidualLat
 
 def pair_points(flat, inst: mi.UInt32, pair: mi.UInt32, t: mi.Float) -> tuple[mi.Vector3f, mi.UInt32]:
     """Box-local point at ray parameter ``t`` and instance of each lane's (slot, ray)
-    ``pair`` (``flat``, ``inst``: as for :meth:`_pair_residuals`)."""
+    ``pair`` (``flat``, ``inst``: as for :func:`pair_residuals`)."""
     ol, dl = [dr.gather(type(x), x, pair) for x in flat[:2]]
     return ol + t * dl, dr.gather(mi.UInt32, inst, pair)
 
@@ -343,7 +343,7 @@ def kink_minima(sdf, kinks: list[mi.Float], bends: tuple[list[mi.Float], list[mi
 
 
 def residual_peaks(sdf, peaks: list[GapPeak], slot_ts: list[mi.Float], reach) -> list[GapPeak]:
-    """The gap peaks of :meth:`_gap_peaks` (found on the boxes' ``B``) moved to where the
+    """The gap peaks of :func:`~.bands.gap_peaks` (found on the boxes' ``B``) moved to where the
     instance SDFs ``F = B + R`` of their two crossing slots cross (detached; ``sdf``: the
     :class:`PairScan` of the pairs), with the envelope weight from ``F``'s slopes there.
 

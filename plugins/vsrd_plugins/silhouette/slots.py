@@ -31,7 +31,7 @@ KINK_MINIMA = 2
 
 @dataclass(frozen=True)
 class Picked:
-    """Per ray, the box of one band slot as :meth:`VSRDSilhouetteIntegrator._adaptive_bands`
+    """Per ray, the box of one band slot as :func:`~.bands.adaptive_bands`
     picks it (detached arrays over the rays). A dataclass, not a named tuple: ``dr.eval``
     looks inside dataclasses, not inside named tuples."""
 
@@ -45,7 +45,7 @@ class Picked:
 
 
 class GapPeak(NamedTuple):
-    """Per ray, the scene SDF's maximum after a slot (:meth:`VSRDSilhouetteIntegrator._gap_peaks`)."""
+    """Per ray, the scene SDF's maximum after a slot (:func:`~.bands.gap_peaks`)."""
 
     t: mi.Float  #: where along the ray
     ok: mi.Bool  #: the gap exists
@@ -57,7 +57,7 @@ class GapPeak(NamedTuple):
 
 @dataclass(frozen=True)
 class Slot:
-    """Per ray, one band's detached sample anchors (:meth:`VSRDSilhouetteIntegrator._adaptive_bands`;
+    """Per ray, one band's detached sample anchors (:func:`~.bands.adaptive_bands`;
     arrays over the rays, an invalid slot at ``far``). A dataclass, so ``dr.eval`` evaluates
     every array of it (it does not look inside named tuples)."""
 
@@ -74,14 +74,14 @@ class Slot:
     deepest: mi.Float  #: the sample at the box's least ``B + R`` (a hit's deepest point)
     #: the minima of ``B + R`` at kinks of ``B`` that the moved samples take, and their envelope
     #: weights (``t0, lambda0, t1, ...``; ``t = -1``: none, ``lambda = -1``: beside a bend), see
-    #: :meth:`VSRDSilhouetteIntegrator._kink_minima`
+    #: :func:`~.residual_search.kink_minima`
     kinks: tuple = ()
     #: band and tail positions moved to the extrema of ``B + R``, in the order
-    #: :meth:`VSRDSilhouetteIntegrator._snapped_slots` returns them (empty: not moved)
+    #: :func:`~.extrema.snapped_slots` returns them (empty: not moved)
     moved: tuple = ()
     #: with the residual field, an isolated ray's samples of the band after its entry, sorted:
     #: the anchors :data:`ISOLATED_ANCHORS`, the extrema of ``B + R`` along the chord and its
-    #: minima at kinks of ``B`` (:meth:`VSRDSilhouetteIntegrator._extremum_samples`)
+    #: minima at kinks of ``B`` (:func:`~.extrema.extremum_samples`)
     isolated: tuple = ()
 
     def map(self, f) -> "Slot":
@@ -112,7 +112,7 @@ class Bands:
 
 class SampleGroup(NamedTuple):
     """The adaptive samples of the rays with one band count and layout
-    (:meth:`VSRDSilhouetteIntegrator._adaptive_groups`)."""
+    (:func:`~.layout.adaptive_groups`)."""
 
     rays: mi.UInt32  #: the group's rays (indices into the batch)
     t: mi.Float  #: ``m`` sorted sample positions per ray, ray-major
@@ -121,7 +121,7 @@ class SampleGroup(NamedTuple):
     inst: list  #: per band slot the instance of each ray's band (``mi.UInt32``)
     deepest: mi.UInt32  #: per sample the band whose deepest point it is (``len(inst)``: none)
     #: per sample the two bands crossing at a gap peak and the first's envelope weight
-    #: (``-1``: no peak), see :meth:`VSRDSilhouetteIntegrator._gap_peaks`
+    #: (``-1``: no peak), see :func:`~.bands.gap_peaks`
     peak: tuple
     own: mi.UInt32 | None  #: per sample its band in an isolated group (``None`` otherwise)
     rows: mi.UInt32  #: the group's rays as indices into the band search's rays (its pairs' rays)
@@ -157,9 +157,9 @@ def count_before(a, b, k: int, before, dense_at_b: bool = False, n: int | None =
 
 
 def band_layout(ctx: SamplingContext, extrema: bool, kk: int = 0) -> tuple[int | None, int]:
-    """Per band of :meth:`_adaptive_groups`: the index of its extra sample and its samples,
+    """Per band of :func:`~.layout.adaptive_groups`: the index of its extra sample and its samples,
     the gap peak included. The full layout: entry, ``kk`` band samples, the first tail, the
-    extra sample, the second tail, the peak (:meth:`_tail_samples`). An isolated band with
+    extra sample, the second tail, the peak (:meth:`~.settings.SamplingContext.tail_samples`). An isolated band with
     the residual field (``extrema``): entry, :attr:`Slot.isolated` (the extra sample among
     them: index ``None``), the peak."""
     if extrema:
