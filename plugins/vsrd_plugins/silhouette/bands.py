@@ -10,7 +10,7 @@ least ``B + R`` and gain tails and moved samples (:mod:`.residual_search`, :mod:
 
 from __future__ import annotations
 
-from dataclasses import replace
+from dataclasses import dataclass, field, replace
 
 import drjit as dr
 import mitsuba as mi
@@ -27,6 +27,110 @@ from .slots import Bands, GapPeak, Picked, Slot
 GAP_WINDOW = 4
 
 
+@dataclass
+class MetBoxes:
+    """Per instance, over the rays that meet at least one enlarged box (detached): the box-local
+    ray, the enlarged box's entry and exit, the box's surface entry and exit, whether the ray
+    meets the enlarged box and enters the box, and its least box SDF's place along the ray."""
+
+    rays: mi.UInt32  #: indices of the rays meeting at least one enlarged box
+    most: int  #: the most enlarged boxes one ray meets
+    views: list  #: per instance the box-local ``(origin, direction, half size)``
+    entry: list
+    exit: list
+    met: list  #: the ray meets the enlarged box
+    hit: list  #: the ray enters the box
+    surface_entry: list
+    surface_exit: list
+    tstar: list = field(default_factory=list)  #: the box SDF's least point (closest approach / deepest point)
+
+
+def met_boxes(ctx: SamplingContext, dec, o, d, time) -> MetBoxes | None:
+    """Slab tests of every ray against every box and its enlargement by the culling margin, and a
+    golden-section search for each met box's least SDF along the ray (the box SDF is convex);
+    ``None`` where no ray meets an enlarged box."""
+    cfg = ctx.settings
+    n_inst, n = ctx.field.n, dr.width(o.x)
+    margin = ctx.cull_margin()
+    views, entry, exit_, hit, tin, tout, act = [], [], [], [], [], [], []
+    for k in range(n_inst):
+        bv = ctx.field.view(dec, k, time, n)
+        ol, dl = bv.to_local(o), bv.dir_to_local(d)
+        e0, e1 = ray_box_interval(ol, dl, bv.half + margin)
+        e0, e1 = dr.maximum(e0, cfg.near), dr.minimum(e1, cfg.far)
+        b0, b1 = ray_box_interval(ol, dl, bv.half)
+        views.append((ol, dl, bv.half))
+        entry.append(e0)
+        exit_.append(e1)
+        act.append(e0 < e1)
+        hit.append((b0 <= b1) & (b1 > cfg.near) & (b0 < cfg.far))
+        tin.append(dr.maximum(b0, cfg.near))
+        tout.append(dr.minimum(b1, cfg.far))
+    any_act, met = act[0], dr.select(act[0], 1, 0)
+    for a in act[1:]:
+        # not ``|=``: Dr.Jit's in-place operators update the array object itself, which
+        # is act[0] (instance 0 then met every ray that met any box)
+        any_act = any_act | a
+        met = met + dr.select(a, 1, 0)
+    # one kernel for every per-instance ray quantity (a gather from an unevaluated
+    # array evaluates it alone: 10 small kernels per instance)
+    dr.eval(any_act, met, views, entry, exit_, act, hit, tin, tout)
+    ray_idx = dr.compress(any_act)
+    if dr.width(ray_idx) == 0:
+        return None
+
+    def sel(x, ty=mi.Float):
+        return dr.gather(ty, x, ray_idx)
+
+    # slots (and gaps between them) only up to the most boxes a ray meets: their searches run
+    # for every ray. Kernels are shaped by this count (at most one set per count, compiled once)
+    out = MetBoxes(ray_idx, int(dr.max(met)[0]), [tuple(sel(v, type(v)) for v in vw) for vw in views],
+                   [sel(x) for x in entry], [sel(x) for x in exit_], [sel(x, mi.Bool) for x in act],
+                   [sel(x, mi.Bool) for x in hit], [sel(x) for x in tin], [sel(x) for x in tout])
+
+    def fk(k):
+        ol, dl, half = out.views[k]
+        return lambda t: box_sdf_local(ol + t * dl, half)
+
+    out.tstar = golden_section([fk(k) for k in range(n_inst)], list(zip(out.entry, out.exit)),
+                               cfg.golden_iterations, "vsrd_golden_section")
+    return out
+
+
+def pick_slots(ctx: SamplingContext, mb: MetBoxes) -> tuple[list[Picked], list[mi.UInt32], mi.UInt32]:
+    """Per slot the box of each ray, nearest least SDF first (at most ``max_bands``), as a
+    :class:`Picked` and its instance (``num_instances`` for an empty slot), and per ray its
+    number of bands."""
+    n_inst, big = ctx.field.n, 1e30
+    max_bands = ctx.settings.max_bands
+    # per instance band: hits centre on the entry, misses end at the closest approach
+    centre = [dr.select(mb.hit[k], mb.surface_entry[k], mb.tstar[k]) for k in range(n_inst)]
+    keys = [dr.select(mb.met[k], mb.tstar[k], big) for k in range(n_inst)]
+    count = mi.UInt32(0)
+    picked, slot_inst = [], []
+    for _ in range(min(mb.most, n_inst if max_bands <= 0 else max_bands)):
+        best = mi.Float(big)
+        kb = mi.UInt32(n_inst)
+        for k in range(n_inst):
+            better = keys[k] < best
+            best = dr.select(better, keys[k], best)
+            kb = dr.select(better, k, kb)
+        valid = best < big
+        count += dr.select(valid, 1, 0)
+        e0, e1, ts, c, b1 = [mi.Float(0.0)] * 5
+        hb = mi.Bool(False)
+        for k in range(n_inst):
+            is_k = kb == k
+            e0, e1, ts, c, b1 = [dr.select(is_k, v, vv) for v, vv in
+                                 zip((mb.entry[k], mb.exit[k], mb.tstar[k], centre[k], mb.surface_exit[k]),
+                                     (e0, e1, ts, c, b1))]
+            hb = dr.select(is_k, mb.hit[k], hb)
+            keys[k] = dr.select(is_k, big, keys[k])
+        picked.append(Picked(valid, e0, e1, ts, c, b1, hb))
+        slot_inst.append(kb)
+    return picked, slot_inst, count
+
+
 def adaptive_bands(ctx: SamplingContext, dec, o, d, time) -> Bands:
     """Detached per-ray band search.
 
@@ -37,88 +141,14 @@ def adaptive_bands(ctx: SamplingContext, dec, o, d, time) -> Bands:
     needs), and per ray whether it is isolated (:func:`isolated_rays`).
     """
     cfg = ctx.settings
-    n_inst = ctx.field.n
-    n = dr.width(o.x)
-    big = 1e30
     with dr.suspend_grad():
         w = ctx.band_half_width()
-        margin = ctx.cull_margin()
-        views, entry, exit_, hit, tin, tout, act = [], [], [], [], [], [], []
-        for k in range(n_inst):
-            bv = ctx.field.view(dec, k, time, n)
-            ol, dl = bv.to_local(o), bv.dir_to_local(d)
-            e0, e1 = ray_box_interval(ol, dl, bv.half + margin)
-            e0, e1 = dr.maximum(e0, cfg.near), dr.minimum(e1, cfg.far)
-            b0, b1 = ray_box_interval(ol, dl, bv.half)
-            views.append((ol, dl, bv.half))
-            entry.append(e0)
-            exit_.append(e1)
-            act.append(e0 < e1)
-            hit.append((b0 <= b1) & (b1 > cfg.near) & (b0 < cfg.far))
-            tin.append(dr.maximum(b0, cfg.near))
-            tout.append(dr.minimum(b1, cfg.far))
-        any_act, met = act[0], dr.select(act[0], 1, 0)
-        for a in act[1:]:
-            # not ``|=``: Dr.Jit's in-place operators update the array object itself, which
-            # is act[0] (instance 0 then met every ray that met any box)
-            any_act = any_act | a
-            met = met + dr.select(a, 1, 0)
-        # one kernel for every per-instance ray quantity (a gather from an unevaluated
-        # array evaluates it alone: 10 small kernels per instance)
-        dr.eval(any_act, met, views, entry, exit_, act, hit, tin, tout)
-        ray_idx = dr.compress(any_act)
-        if dr.width(ray_idx) == 0:
-            return Bands(ray_idx, None, [], [], [], None)
-        # slots (and gaps between them) only up to the most boxes a ray meets: their
-        # searches run for every ray. Kernels are shaped by this count (at most one set per
-        # count, compiled once each)
-        most_met = int(dr.max(met)[0])
-
-        def sel(x, ty=mi.Float):
-            return dr.gather(ty, x, ray_idx)
-
-        views = [tuple(sel(v, type(v)) for v in vw) for vw in views]
-        entry = [sel(x) for x in entry]
-        exit_ = [sel(x) for x in exit_]
-        act = [sel(x, mi.Bool) for x in act]
-        hit = [sel(x, mi.Bool) for x in hit]
-        tin = [sel(x) for x in tin]
-        tout = [sel(x) for x in tout]
-
-        # golden-section search for argmin_t B_k(o + t d) on [entry, exit] (B_k is convex)
-        def fk(k):
-            ol, dl, half = views[k]
-            return lambda t: box_sdf_local(ol + t * dl, half)
-
-        tstar = golden_section([fk(k) for k in range(n_inst)], list(zip(entry, exit_)),
-                               cfg.golden_iterations, "vsrd_golden_section")
-
-        # per instance band: hits centre on the entry, misses end at the closest approach
-        centre = [dr.select(hit[k], tin[k], tstar[k]) for k in range(n_inst)]
-        keys = [dr.select(act[k], tstar[k], big) for k in range(n_inst)]
-        count = mi.UInt32(0)
-        picked, slot_inst = [], []
-        n_slots = min(most_met, n_inst if cfg.max_bands <= 0 else cfg.max_bands)
-        for _ in range(n_slots):
-            best = mi.Float(big)
-            kb = mi.UInt32(n_inst)
-            for k in range(n_inst):
-                better = keys[k] < best
-                best = dr.select(better, keys[k], best)
-                kb = dr.select(better, k, kb)
-            valid = best < big
-            count += dr.select(valid, 1, 0)
-            e0, e1, ts, c, b1 = [mi.Float(0.0)] * 5
-            hb = mi.Bool(False)
-            for k in range(n_inst):
-                is_k = kb == k
-                e0, e1, ts, c, b1 = [dr.select(is_k, v, vv) for v, vv in
-                                     zip((entry[k], exit_[k], tstar[k], centre[k], tout[k]), (e0, e1, ts, c, b1))]
-                hb = dr.select(is_k, hit[k], hb)
-                keys[k] = dr.select(is_k, big, keys[k])
-            picked.append(Picked(valid, e0, e1, ts, c, b1, hb))
-            slot_inst.append(kb)
-        slot_views = [slot_view(ctx, views, kb) for kb in slot_inst]
+        mb = met_boxes(ctx, dec, o, d, time)
+        if mb is None:
+            return Bands(dr.zeros(mi.UInt32, 0), None, [], [], [], None)
+        ray_idx = mb.rays
+        picked, slot_inst, count = pick_slots(ctx, mb)
+        slot_views = [slot_view(ctx, mb.views, kb) for kb in slot_inst]
         # the picked boxes and their views in one kernel (read per slot below)
         dr.eval(count, slot_inst, picked, slot_views)
         # with the residual the instance SDF B + R has its minimum near, not at, the box's:
