@@ -23,7 +23,7 @@ from vsrd_mi.data.selection import SelectionConfig, select_targets
 from vsrd_mi.export.kitti_labels import box_from_label, parse_label_line, read_labels, write_labels
 from vsrd_mi.geometry.boxes import Box3D
 from vsrd_mi.optimise.config import AutolabelConfig, ConsensusConfig, default_config, paper_config
-from vsrd_mi.autolabel.consensus import apply_consensus, axis_mean, fuse_boxes, labels_in_frame
+from vsrd_mi.autolabel.consensus import apply_consensus, axis_mean, fuse_boxes, labels_in_frame, weighted_median
 
 ROOT = Path(__file__).resolve().parents[1] / "scenes" / "kitti360-synth"
 #: Per-target perturbations of parked cars, cycled; every pair / triple of consecutive ones cancels
@@ -114,7 +114,9 @@ def test_consensus_fuses_parked_cars_to_the_ground_truth(scene, tmp_path):
     counts = write_results(seq, specs, tmp_path)
     seq_dir = tmp_path / seq.name
     before = label_texts(seq_dir)
-    report = apply_consensus(seq_dir, seq, ConsensusConfig())
+    # equal weights (every car nearer than near_range): the perturbations cancel in the median
+    report = apply_consensus(seq_dir, seq, ConsensusConfig(near_range=1e3))
+    assert report["fused"] and report == apply_consensus(seq_dir, seq, ConsensusConfig(near_range=1e3))
     fused = {c["instance_id"]: c for c in report["fused"]}
     parked_multi = {iid for iid, n in counts.items() if n >= 2 and not any(
         b.dynamic for b in seq.ground_truth(specs[0].target) if b.instance_id == iid)}
@@ -240,3 +242,20 @@ def test_autolabel_cli_keeps_the_targets_labels_when_the_consensus_fails(scene, 
     err = capsys.readouterr().err
     assert "consensus of parked cars skipped" in err and "NaN in the pose of frame 3" in err
     assert label_texts(tmp_path / seq.name) and not (tmp_path / seq.name / "consensus.json").exists()
+
+
+def test_closer_views_weigh_more_in_the_fused_box():
+    """Three boxes of one car seen from 12, 40 and 45 m: the near one's yaw, size and centre win."""
+    near = Box3D(centre=(3.0, 1.0, 12.0), size=(1.8, 1.5, 4.4), yaw=0.5)
+    far = [Box3D(centre=(3.3, 1.0, 12.2 + 0.1 * k), size=(1.7, 1.4, 3.9), yaw=0.1) for k in range(2)]
+    weights = np.array([1 / 12.0 ** 2, 1 / 40.0 ** 2, 1 / 45.0 ** 2])
+    fused, inliers = fuse_boxes([near, *far], gate=2.0, weights=weights)
+    assert inliers.all()
+    np.testing.assert_allclose(fused.centre, near.centre)
+    np.testing.assert_allclose(fused.size, near.size)
+    assert 0.42 < fused.yaw < 0.5   # the weighted axis mean (0.448), close to the near box's
+    equal, _ = fuse_boxes([near, *far], gate=2.0)
+    np.testing.assert_allclose(equal.size, far[0].size)   # unweighted: the far majority
+    for n in (3, 4):
+        vals = np.random.default_rng(n).normal(size=(n, 3))
+        np.testing.assert_allclose(weighted_median(vals, np.ones(n)), np.median(vals, axis=0))

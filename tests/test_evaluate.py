@@ -13,9 +13,11 @@ import pytest
 from vsrd_mi.cli import main
 from vsrd_mi.errors import DataError
 from vsrd_mi.evaluate.ap import average_precision, devkit_thresholds
-from vsrd_mi.evaluate.matching import FrameMatchInput, count_at_threshold
+from vsrd_mi.evaluate.attributes import ATTRIBUTES_FORMAT, CarAttributes, read_attributes
+from vsrd_mi.evaluate.matching import FrameMatchInput, count_at_threshold, orientation_similarity
 from vsrd_mi.evaluate.metrics import hungarian_pairs, yaw_error_mod_pi
-from vsrd_mi.evaluate.sequence import EvalConfig, FrameBoxes, evaluate_frames, evaluate_sequence
+from vsrd_mi.evaluate.sequence import (EvalConfig, FrameBoxes, evaluate_frames, evaluate_sequence,
+                                       observation_angles)
 from vsrd_mi.export.kitti_labels import label_from_box, write_labels
 from vsrd_mi.geometry.boxes import Box3D
 from vsrd_mi.geometry.camera import box_to_2d
@@ -228,11 +230,11 @@ def test_yaw_error_is_modulo_pi():
 NO_DETECTION = -10000000.0
 
 
-def _devkit_statistics(ov, ig_gt, ig_det, scores, min_overlap, compute_fp, thresh):
+def _devkit_statistics(ov, ig_gt, ig_det, scores, min_overlap, compute_fp, thresh, alpha_gt=None, alpha_det=None):
     assigned = [False] * len(scores)
     ig_thr = [s < thresh for s in scores]
     tp = fp = fn = 0
-    v = []
+    v, delta = [], []
     for i in range(len(ig_gt)):
         det_idx, valid, max_iou, assigned_ignored = -1, NO_DETECTION, 0.0, False
         for j in range(len(scores)):
@@ -252,10 +254,13 @@ def _devkit_statistics(ov, ig_gt, ig_det, scores, min_overlap, compute_fp, thres
         elif valid != NO_DETECTION:
             tp += 1
             v.append(scores[det_idx])
+            if alpha_gt is not None:
+                delta.append(alpha_gt[i] - alpha_det[det_idx])
             assigned[det_idx] = True
     if compute_fp:
         fp = sum(1 for j in range(len(scores)) if not (assigned[j] or ig_det[j] or ig_thr[j]))
-    return tp, fp, fn, v
+    similarity = sum((1.0 + math.cos(d)) / 2.0 for d in delta)
+    return tp, fp, fn, v, similarity
 
 
 def _get_thresholds(v, n_groundtruth, n_sample_pts=41):
@@ -273,28 +278,35 @@ def _get_thresholds(v, n_groundtruth, n_sample_pts=41):
     return t
 
 
-def _reference_aps(frames, min_overlap):
+def _reference_aps(frames, min_overlap, alphas=None, aos=False):
+    """(exact, devkit) AP|R40 and AP|R11 of a literal port; AOS instead of AP with ``aos``
+    (``alphas``: per frame (gt alphas, detection alphas))."""
     n_gt = sum(int(np.sum(~f.gt_ignored)) for f in frames)
+    alphas = alphas or [(None, None)] * len(frames)
     args = [(f.overlap.tolist(), f.gt_ignored.tolist(), f.det_ignored.tolist(), f.scores.tolist())
             for f in frames]
     v = [s for a in args for s in _devkit_statistics(*a, min_overlap, False, 0.0)[3]]
 
     def totals(t):
-        return np.sum([_devkit_statistics(*a, min_overlap, True, t)[:3] for a in args], axis=0)
+        stats = [_devkit_statistics(*a, min_overlap, True, t, *al) for a, al in zip(args, alphas)]
+        return np.sum([(tp, fp, fn, sim) for tp, fp, fn, _, sim in stats], axis=0)
+
+    def value(tp, fp, sim):
+        return (sim if aos else tp) / (tp + fp) if tp + fp else 0.0
 
     # devkit curve
     thresholds = _get_thresholds(v, n_gt)
     prec = [0.0] * 41
     for i, t in enumerate(thresholds):
-        tp, fp, _ = totals(t)
-        prec[i] = tp / (tp + fp)
+        tp, fp, _, sim = totals(t)
+        prec[i] = value(tp, fp, sim)
     prec = [max(prec[i:]) for i in range(41)]
     devkit = (100 * sum(prec[1:]) / 40, 100 * sum(prec[0::4]) / 11)
     # exact curve, from every distinct score
     points = []
     for t in sorted({s for a in args for s in a[3]}):
-        tp, fp, _ = totals(t)
-        points.append((tp / n_gt, tp / (tp + fp) if tp + fp else 0.0))
+        tp, fp, _, sim = totals(t)
+        points.append((tp / n_gt, value(tp, fp, sim)))
     samples = [max([p for r, p in points if r >= k / 40 - 1e-12], default=0.0) for k in range(41)]
     exact = (100 * sum(samples[1:]) / 40, 100 * sum(samples[0::4]) / 11)
     return exact, devkit
@@ -316,17 +328,26 @@ def test_against_a_literal_devkit_port(seed):
         frames.append((gt, det, np.round(rng.uniform(0.05, 1, len(det)), 1),  # ties in score
                        rng.choice([TINY_PX, HARD_ONLY_PX, EASY_PX], len(gt), p=[0.15, 0.25, 0.6]),
                        rng.choice([TINY_PX, HARD_ONLY_PX, EASY_PX], len(det), p=[0.15, 0.25, 0.6])))
+    alphas = [(observation_angles(g), observation_angles(d)) for g, d, *_ in frames]
     for metric in (0, 1):
         for thr in (0.3, 0.5):
             for min_h in (25.0, 40.0):
                 inputs = [FrameMatchInput(overlap=iou_matrices(g, d)[metric], gt_ignored=gh <= min_h,
-                                          det_ignored=dh <= min_h, scores=s) for g, d, s, gh, dh in frames]
+                                          det_ignored=dh < min_h, scores=s,
+                                          similarity=orientation_similarity(*al))
+                          for (g, d, s, gh, dh), al in zip(frames, alphas)]
                 res = average_precision(inputs, thr)
                 (r40, r11), (d40, d11) = _reference_aps(inputs, thr)
                 assert res.r40 == pytest.approx(r40, abs=1e-9)
                 assert res.r11 == pytest.approx(r11, abs=1e-9)
                 assert res.devkit_r40 == pytest.approx(d40, abs=1e-9)
                 assert res.devkit_r11 == pytest.approx(d11, abs=1e-9)
+                (a40, a11), (da40, da11) = _reference_aps(inputs, thr, alphas, aos=True)
+                assert res.aos_r40 == pytest.approx(a40, abs=1e-9)
+                assert res.aos_r11 == pytest.approx(a11, abs=1e-9)
+                assert res.devkit_aos_r40 == pytest.approx(da40, abs=1e-9)
+                assert res.devkit_aos_r11 == pytest.approx(da11, abs=1e-9)
+                assert res.aos_r40 <= res.r40 + 1e-9
 
 
 def test_devkit_thresholds_pick_nearest_recall():
@@ -347,6 +368,7 @@ K = np.array([[FX, 0, CX], [0, FX, CY], [0, 0, 1.0]])
 # rectified camera (x right, y down, z forward) -> world (z up), camera looking along world +x
 R_CAM_TO_WORLD = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
 CAM_STEP = 1.0  # camera moves 1 m along world +x per frame
+PROJECTED = EvalConfig(gt_boxes="projected")
 
 
 def _matrix_xml(tag: str, m: np.ndarray) -> str:
@@ -436,18 +458,21 @@ def test_cli_perfect_predictions(dataset, tmp_path, capsys):
     pred = tmp_path / "pred"
     for f in (0, 1, 2):
         _write_predictions(pred, f, _camera_boxes(f), [0.9, 0.8, 0.7])
-    assert main(["eval", "--pred", str(pred), "--gt", str(dataset), "--sequence", "7", "--json"]) == 0
+    assert main(["eval", "--pred", str(pred), "--gt", str(dataset), "--sequence", "7", "--json",
+                 "--gt-boxes", "projected"]) == 0
     result = json.loads(capsys.readouterr().out)
     assert result["sequence"] == SEQ and result["frames"] == [0, 1, 2]
+    assert result["protocol"]["gt_boxes"] == "projected"
     assert result["counts"]["easy"]["n_gt"] == 6 and result["counts"]["hard"]["n_gt"] == 9
     for key in ("R40", "R11"):
         assert all_ap_values(result, key) == pytest.approx([100.0] * 12, abs=1e-6)
     assert result["pairs"]["dynamic"]["n_gt"] == 3
     assert result["pairs"]["dynamic"]["mean_iou_3d"] == pytest.approx(1.0, abs=1e-5)
     assert result["protocol"]["headline_curve"] == "exact"
-    assert main(["eval", "--pred", str(pred), "--gt", str(dataset), "--sequence", SEQ]) == 0
+    assert main(["eval", "--pred", str(pred), "--gt", str(dataset), "--sequence", SEQ, "--gt-boxes", "projected"]) == 0
     table = capsys.readouterr().out
     assert "AP_BEV@0.3" in table and "AP_3D@0.5" in table and "100.00" in table and "dynamic" in table
+    assert "Ground-truth 2D boxes: projected" in table and "AOS(3D@0.5)" in table
 
 
 def test_cli_nested_layout_frames_and_misses(dataset, tmp_path, capsys):
@@ -459,7 +484,7 @@ def test_cli_nested_layout_frames_and_misses(dataset, tmp_path, capsys):
     _write_predictions(labels, 2, _camera_boxes(2), [0.9, 0.8, 0.7])
     # frames 0-1: frame 1 has no file and counts as all missed; frame 2 is not selected
     assert main(["eval", "--pred", str(tmp_path / "out"), "--gt", str(dataset), "--sequence", "7",
-                 "--frames", "0-1", "--json"]) == 0
+                 "--frames", "0-1", "--json", "--gt-boxes", "projected"]) == 0
     result = json.loads(capsys.readouterr().out)
     assert result["frames"] == [0, 1] and result["frames_without_predictions"] == [1]
     easy_iou = (1 - 0.45) / (1 + 0.45)  # the moving car, shifted by 45 % of its length
@@ -470,14 +495,14 @@ def test_cli_nested_layout_frames_and_misses(dataset, tmp_path, capsys):
     assert result["pairs"]["dynamic"]["mean_iou_bev"] == pytest.approx(easy_iou, abs=1e-6)
     assert result["pairs"]["dynamic"]["recall_weighted_iou_bev"] == pytest.approx(easy_iou / 2, abs=1e-6)
     # without --frames only files count: frames 0 and 2
-    result = evaluate_sequence(tmp_path / "out", dataset, SEQ)
+    result = evaluate_sequence(tmp_path / "out", dataset, SEQ, config=PROJECTED)
     assert result["frames"] == [0, 2] and result["frames_without_predictions"] == []
 
 
 def test_visible_only_keeps_ground_truth_present_in_the_instance_map(dataset, tmp_path, capsys):
     pred = tmp_path / "pred"
     _write_predictions(pred, 0, _camera_boxes(0)[::2], [0.9, 0.7])  # the hard-only car not labelled
-    args = ["eval", "--pred", str(pred), "--gt", str(dataset), "--sequence", "7", "--json"]
+    args = ["eval", "--pred", str(pred), "--gt", str(dataset), "--sequence", "7", "--json", "--gt-boxes", "projected"]
     assert main(args) == 0
     assert ap(json.loads(capsys.readouterr().out), "3d", "0.7", "hard")["max_recall"] == pytest.approx(2 / 3)
     assert main(args + ["--visible-only"]) == 1
@@ -503,17 +528,223 @@ def test_cli_errors(dataset, tmp_path, capsys):
     assert main(["eval", "--pred", str(pred), "--gt", str(dataset), "--sequence", "7"]) == 1
     assert "no prediction files" in capsys.readouterr().err
     (pred / "0000000001.txt").write_text("Car 0 0 0 1 2 3 40 1.5 1.8 4.2 0 1 10 0.1 0.5 extra\n")
-    assert main(["eval", "--pred", str(pred), "--gt", str(dataset), "--sequence", "7"]) == 1
+    assert main(["eval", "--pred", str(pred), "--gt", str(dataset), "--sequence", "7", "--gt-boxes", "projected"]) == 1
     err = capsys.readouterr().err
     assert "0000000001.txt" in err and "line 1" in err
     (pred / "0000000001.txt").write_text("Car 0 0 0 1 2 3 40 1.5 1.8 4.2 0 1 10 0.1\n")
     with pytest.raises(DataError, match="no score"):
-        evaluate_sequence(pred, dataset, 7)
-    assert evaluate_sequence(pred, dataset, 7, config=EvalConfig(default_score=1.0))["frames"] == [1]
+        evaluate_sequence(pred, dataset, 7, config=PROJECTED)
+    lenient = EvalConfig(default_score=1.0, gt_boxes="projected")
+    assert evaluate_sequence(pred, dataset, 7, config=lenient)["frames"] == [1]
+    with pytest.raises(DataError, match="instance map.*--gt-boxes projected"):
+        evaluate_sequence(pred, dataset, 7, config=EvalConfig(default_score=1.0))
     (pred / "0000000009.txt").write_text("")
     with pytest.raises(DataError, match="not a frame"):
-        evaluate_sequence(pred, dataset, 7, config=EvalConfig(default_score=1.0))
+        evaluate_sequence(pred, dataset, 7, config=lenient)
     with pytest.raises(DataError, match="not frames"):
         evaluate_sequence(pred, dataset, 7, frames=[1, 5])
     with pytest.raises(SystemExit):
         main(["eval", "--pred", str(pred), "--gt", str(dataset), "--sequence", "7", "--frames", "5-2"])
+
+
+# ------------------------------ the devkit's height rules, AOS, breakdowns ------------------------------
+
+
+def test_prediction_at_exactly_the_height_limit_counts():
+    """eval.py: ground truth is ignored at height <= limit, a detection only below it."""
+    gt = row(2)
+    result = evaluate_frames([frame(gt, gt, [0.9, 0.8], gt_h=np.array([EASY_PX, 40.0]),
+                                    pred_h=np.array([40.0, 40.0]), index=k) for k in range(30)])
+    easy = ap(result, difficulty="easy")
+    assert easy["n_gt"] == 30 and easy["R40"] == pytest.approx(100.0)
+    assert result["counts"]["easy"] == {"n_gt": 30, "n_pred": 60}
+
+
+def _visible_part_frames(n_frames: int = 12) -> tuple[list, list, list]:
+    """Ground truth written as predictions whose 2D boxes are their visible parts: one car of
+    three is partly hidden, so its visible box is below the Easy limit while its projected box
+    is above it."""
+    rng = np.random.default_rng(3)
+    gts, projected, visible = [], [], []
+    for _ in range(n_frames):
+        gts.append(row(3, yaw=float(rng.uniform(-1, 1))))
+        projected.append(np.array([EASY_PX, EASY_PX, 60.0]))
+        visible.append(np.array([EASY_PX, EASY_PX - 20.0, HARD_ONLY_PX]))
+    return gts, projected, visible
+
+
+def test_ground_truth_as_predictions_with_visible_boxes():
+    """Projected ground-truth boxes: the hidden car's match is an ignored prediction, neither hit
+    nor miss, and it stays in the devkit's recall denominator, so AP < 100 in our evaluator *and*
+    in the literal port; with the ground truth's own visible boxes (the mask protocol) AP = 100."""
+    gts, projected, visible = _visible_part_frames()
+    scores = [0.9, 0.8, 0.7]
+    frames = [frame(g, g, scores, gt_h=p, pred_h=v, index=k) for k, (g, p, v) in enumerate(zip(gts, projected, visible))]
+    easy = ap(evaluate_frames(frames), difficulty="easy")
+    inputs = [FrameMatchInput(overlap=iou_matrices(f.gt, f.pred)[1], gt_ignored=f.gt_height <= 40.0,
+                              det_ignored=f.pred_height < 40.0, scores=f.pred_score) for f in frames]
+    (r40, r11), (d40, _) = _reference_aps(inputs, 0.5)
+    assert easy["max_recall"] == pytest.approx(2 / 3)
+    assert easy["R40"] == pytest.approx(r40) and easy["R11"] == pytest.approx(r11)
+    assert easy["devkit_R40"] == pytest.approx(d40)
+    assert easy["R40"] == pytest.approx(100.0 * 26 / 40)  # recall 2/3 reaches sample 26 of 40
+    masked = [frame(g, g, scores, gt_h=v, pred_h=v, index=k) for k, (g, v) in enumerate(zip(gts, visible))]
+    result = evaluate_frames(masked)
+    for difficulty in ("easy", "hard"):
+        assert ap(result, difficulty=difficulty)["R40"] == pytest.approx(100.0)
+
+
+def test_aos_and_heading_accuracy_see_backwards_boxes():
+    gt = row(4, yaw=0.4)
+    n = 12  # 48 cars: the devkit curve has no few-box quirk
+    frames = [frame(gt, gt, [0.9, 0.8, 0.7, 0.6], index=k) for k in range(n)]
+    result = evaluate_frames(frames)
+    res = ap(result)
+    assert res["AOS_R40"] == pytest.approx(100.0) and res["devkit_AOS_R11"] == pytest.approx(100.0)
+    assert result["pairs"]["all"]["heading_accuracy"] == 1.0
+    # every box turned end for end: the same box (AP 100), the opposite heading (AOS 0)
+    backwards = [frame(gt, row(4, yaw=0.4 + math.pi), [0.9, 0.8, 0.7, 0.6], index=k) for k in range(n)]
+    result = evaluate_frames(backwards)
+    res = ap(result)
+    assert res["R40"] == pytest.approx(100.0) and res["AOS_R40"] == pytest.approx(0.0, abs=1e-9)
+    assert result["pairs"]["all"]["heading_accuracy"] == 0.0
+    assert result["pairs"]["all"]["yaw_error_deg"] == pytest.approx(0.0, abs=1e-9)
+    # half of them turned: AOS = half of AP at every recall
+    mixed = [frame(gt, gt[:2] + row(4, yaw=0.4 + math.pi)[2:], [0.9, 0.8, 0.7, 0.6], index=k) for k in range(n)]
+    result = evaluate_frames(mixed)
+    assert result["pairs"]["all"]["heading_accuracy"] == pytest.approx(0.5)
+    res = ap(result)
+    assert res["R40"] == pytest.approx(100.0)
+    # precision is 1 at every threshold; thresholds keep t = n, 2n, 3n or 4n TPs, of which the first
+    # 2n (scores 0.9 / 0.8) face the right way: sample k is the best min(t, 2n) / t with t / 4n >= k / 40
+    samples = [max(min(t, 2 * n) / t for t in (n, 2 * n, 3 * n, 4 * n) if t * 40 >= k * 4 * n) for k in range(41)]
+    assert res["AOS_R40"] == pytest.approx(100.0 * np.mean(samples[1:]))
+    assert res["AOS_R11"] == pytest.approx(100.0 * np.mean(samples[::4]))
+
+
+def test_size_bias_heading_and_missed_share_per_class():
+    gt = [car(x=0.0), car(x=5.0), car(x=10.0), car(x=15.0)]
+    attrs = [CarAttributes(vehicle_class="sedan"), CarAttributes(vehicle_class="sedan"),
+             CarAttributes(vehicle_class="van"), CarAttributes(vehicle_class="van")]
+    pred = [Box3D(centre=(0.0, 1.0, 20.0), size=(0.9 * W, H, 1.1 * L), yaw=0.0),
+            Box3D(centre=(5.0, 1.0, 20.0), size=(0.9 * W, H, 1.3 * L), yaw=math.pi),
+            Box3D(centre=(10.0, 1.0, 20.0), size=(W, 1.2 * H, L), yaw=0.0)]  # the last van is missed
+    f = FrameBoxes(frame=0, gt=gt, gt_height=np.full(4, EASY_PX), pred=pred, pred_score=[0.9, 0.8, 0.7],
+                   pred_height=np.full(3, EASY_PX), gt_attributes=attrs)
+    result = evaluate_frames([f])
+    sedan, van = result["breakdown"]["by_class"]["sedan"], result["breakdown"]["by_class"]["van"]
+    assert sedan["size_bias"]["length"]["mean_rel"] == pytest.approx(0.2)
+    assert sedan["size_bias"]["length"]["median_m"] == pytest.approx(0.2 * L)
+    assert sedan["size_bias"]["width"]["mean_rel"] == pytest.approx(-0.1)
+    assert sedan["size_bias"]["height"]["mean_m"] == pytest.approx(0.0)
+    assert sedan["heading_accuracy"] == pytest.approx(0.5) and sedan["missed_share"] == 0.0
+    assert van["missed_share"] == pytest.approx(0.5) and van["n_matched"] == 1
+    assert van["size_bias"]["height"]["mean_rel"] == pytest.approx(0.2)
+    assert result["pairs"]["all"]["missed_share"] == pytest.approx(0.25)
+    assert list(result["breakdown"]["by_distance"]) == ["20-40 m"]  # 20.0-25.0 m away
+    assert result["breakdown"]["by_occlusion"] is None and result["breakdown"]["by_parking"] is None
+
+
+def test_breakdown_bins_by_distance_and_occlusion():
+    gt = [car(x=0.0, z=z) for z in (10.0, 30.0, 50.0, 70.0)]
+    attrs = [CarAttributes(occlusion=o) for o in (0.0, 0.45, 0.7, 0.95)]
+    f = FrameBoxes(frame=0, gt=gt, gt_height=np.full(4, EASY_PX), pred=gt[:3], pred_score=[0.9, 0.8, 0.7],
+                   pred_height=np.full(3, EASY_PX), gt_attributes=attrs)
+    b = evaluate_frames([f])["breakdown"]
+    assert list(b["by_distance"]) == ["0-20 m", "20-40 m", "40-60 m", "60 m+"]
+    assert list(b["by_occlusion"]) == ["0-30 %", "30-60 %", "60-80 %", "80 %+"]
+    assert [g["missed_share"] for g in b["by_occlusion"].values()] == [0.0, 0.0, 0.0, 1.0]
+    assert b["by_distance"]["60 m+"]["n_matched"] == 0 and b["by_distance"]["40-60 m"]["mean_iou_3d"] == pytest.approx(1.0)
+
+
+# ------------------------------ the mask protocol and the attributes sidecar on the CLI ------------------------------
+
+
+def _write_instance_maps(root: Path, frames=(0, 1, 2)) -> None:
+    """Car 1 (static, Easy) 60 px tall, car 3 (moving) 30 px tall; car 2 is hidden (no pixels)."""
+    inst_dir = root / "data_2d_semantics" / "train" / SEQ / "image_00" / "instance"
+    inst_dir.mkdir(parents=True)
+    for f in frames:
+        inst = np.zeros((IMG_H, IMG_W), np.uint16)
+        inst[100:161, 100:300] = 26001  # rows 100..160: masks_to_boxes height 60
+        inst[120:151, 400:600] = 26003  # rows 120..150: height 30
+        cv2.imwrite(str(inst_dir / f"{f:010d}.png"), inst)
+
+
+def _write_sidecar(root: Path, data: dict) -> Path:
+    path = root / "data_3d_bboxes" / "train" / f"{SEQ}.attributes.json"
+    path.write_text(json.dumps(data))
+    return path
+
+
+SIDECAR = {"format": ATTRIBUTES_FORMAT,
+           "instances": {"26001": {"vehicle_class": "sedan", "dynamic": False, "parking": "angled",
+                                   "angle_to_road_deg": 30.0},
+                         "26003": {"vehicle_class": "van", "dynamic": True, "parking": None}},
+           "frames": {str(f): {"26001": {"occlusion": 0.1, "truncation": 0.0},
+                               "26003": {"occlusion": 0.5, "truncation": 0.0}} for f in (0, 1, 2)}}
+
+
+def test_mask_protocol_takes_ground_truth_from_the_instance_maps(dataset, tmp_path, capsys):
+    pred = tmp_path / "pred"
+    for f in (0, 1, 2):
+        _write_predictions(pred, f, _camera_boxes(f), [0.9, 0.8, 0.7])
+    _write_instance_maps(dataset)
+    assert main(["eval", "--pred", str(pred), "--gt", str(dataset), "--sequence", "7", "--json"]) == 0
+    result = json.loads(capsys.readouterr().out)
+    assert result["protocol"]["gt_boxes"] == "mask" and "masks_to_boxes" in result["protocol"]["gt_boxes_rule"]
+    # Easy: car 1 only (60 px); car 3's 30 px box is Hard only; car 2 is not ground truth
+    assert result["counts"]["easy"]["n_gt"] == 3 and result["counts"]["hard"]["n_gt"] == 6
+    assert ap(result, "3d", "0.7", "easy")["R40"] == pytest.approx(100.0)
+    # Hard: the prediction of the hidden car 2 (score 0.8, about 30 px) is a false positive
+    assert ap(result, "3d", "0.7", "hard")["R40"] == pytest.approx(100.0 * (20 + 20 * 2 / 3) / 40)
+    assert result["pairs"]["all"]["n_gt"] == 6 and result["pairs"]["all"]["missed_share"] == 0.0
+    assert result["attributes"] is None and result["breakdown"]["by_class"] is None
+    # the same predictions under the projection protocol: car 2 is ground truth again
+    assert main(["eval", "--pred", str(pred), "--gt", str(dataset), "--sequence", "7", "--json",
+                 "--gt-boxes", "projected"]) == 0
+    assert ap(json.loads(capsys.readouterr().out), "3d", "0.7", "hard")["R40"] == pytest.approx(100.0)
+
+
+def test_sidecar_attributes_feed_the_breakdowns(dataset, tmp_path, capsys):
+    pred = tmp_path / "pred"
+    for f in (0, 1, 2):
+        _write_predictions(pred, f, _camera_boxes(f), [0.9, 0.8, 0.7])
+    _write_instance_maps(dataset)
+    path = _write_sidecar(dataset, SIDECAR)
+    result = evaluate_sequence(pred, dataset, 7)
+    assert result["attributes"] == str(path)
+    b = result["breakdown"]
+    assert list(b["by_class"]) == ["sedan", "van"] and b["by_class"]["van"]["n_gt"] == 3
+    assert list(b["by_occlusion"]) == ["0-30 %", "30-60 %"]
+    assert list(b["by_parking"]) == ["angled"] and b["by_parking"]["angled"]["yaw_error_deg"] == pytest.approx(0.0, abs=1e-3)
+    assert main(["eval", "--pred", str(pred), "--gt", str(dataset), "--sequence", "7"]) == 0
+    table = capsys.readouterr().out
+    assert "By vehicle class:" in table and "sedan" in table and "30-60 %" in table and "angled" in table
+
+
+@pytest.mark.parametrize("change, problem", [
+    ({"format": "other"}, "not a sidecar"),
+    ({"instances": {"car": {}}}, "not a non-negative integer"),
+    ({"instances": {"26001": {"parking": "diagonal"}}}, "not one of"),
+    ({"frames": {"0": {"26001": {"occlusion": 1.5}}}}, "outside"),
+    ({"instances": {"26001": {"dynamic": "yes"}}}, "true / false"),
+])
+def test_bad_sidecar_names_the_file(dataset, change, problem):
+    path = _write_sidecar(dataset, {**SIDECAR, **change})
+    with pytest.raises(DataError, match=problem) as info:
+        read_attributes(dataset, 7)
+    assert str(path) in str(info.value)
+    path.write_text("{not json")
+    with pytest.raises(DataError, match="malformed JSON"):
+        read_attributes(dataset, 7)
+
+
+def test_missing_sidecar_means_no_attributes(dataset):
+    assert read_attributes(dataset, 7) is None
+    path = _write_sidecar(dataset, SIDECAR)
+    attrs = read_attributes(dataset, 7)
+    assert attrs.path == path
+    assert attrs.lookup(1, 26001) == CarAttributes("sedan", False, "angled", 30.0, 0.1, 0.0)
+    assert attrs.lookup(7, 26003) == CarAttributes("van", True, None, None, None, None)
+    assert attrs.lookup(0, 26099) == CarAttributes()

@@ -17,7 +17,6 @@ from vsrd_mi.data.kitti360 import (CAR_KITTI_ID, Sequence, boxes_in_camera, read
                                    read_cam0_to_world, read_world_boxes, sequence_name)
 from vsrd_mi.data.masks import car_masks, soft_weight, tight_box, valid_car_ids
 from vsrd_mi.data.observations import gravity_rotation, opt_from_world
-from vsrd_mi.errors import DataError
 
 REAL = Path("/work/shared/data/kitti360-real-0000")
 SEQ = sequence_name(0)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from test_kitti360_loader import SEQ, K as TOY_K, H, W, camera_pose, make_dataset
+from test_kitti360_loader import SEQ, K as TOY_K, H, W, make_dataset
 
 import vsrd_mi  # noqa: F401
 import mitsuba as mi

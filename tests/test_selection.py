@@ -1,4 +1,4 @@
-"""Frame selection (REFERENCE §5) on hand-built id sets with hand-computed answers."""
+"""Frame selection (docs/method.md §5) on hand-built id sets with hand-computed answers."""
 
 from __future__ import annotations
 

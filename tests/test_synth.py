@@ -20,8 +20,9 @@ from vsrd_mi.synth import SynthConfig, generate_sequence, render_frame
 from vsrd_mi.synth.cars import (GLASS, TYRE, ProceduralCarConfig, bundled_mesh_paths,
                                      load_car_mesh, procedural_car)
 from vsrd_mi.synth.config import RigConfig, TrafficConfig
-from vsrd_mi.synth.render import car_visibility
-from vsrd_mi.synth.world import WORLD_TO_G, PlacementError, build_world
+from vsrd_mi.synth.attributes import car_visibility
+from vsrd_mi.synth.layout import build_world
+from vsrd_mi.synth.world import WORLD_TO_G, PlacementError
 from vsrd_mi.errors import DataError
 from vsrd_mi.geometry.boxes import wrap_angle
 from vsrd_mi.geometry.boxes2d import iou
@@ -59,7 +60,7 @@ def test_same_seed_same_bytes_different_seed_differs(tmp_path):
     for name, seed in (("a", 4), ("b", 4), ("c", 5)):
         generate_sequence(tmp_path / name, frames=2, n_static=3, n_dynamic=1, seed=seed, config=cfg)
         runs[name] = tree_bytes(tmp_path / name)
-    assert len(runs["a"]) == 1 + 1 + 2 + 2 * 2 + 2 + 1  # calib x2, poses x2, images, masks, xml
+    assert len(runs["a"]) == 1 + 1 + 2 + 2 * 2 + 2 + 2  # calib x2, poses x2, images, masks, xml, attributes
     assert runs["a"] == runs["b"]
     assert runs["a"].keys() == runs["c"].keys()
     differing = [k for k in runs["a"] if runs["a"][k] != runs["c"][k]]
@@ -243,9 +244,16 @@ def test_projected_boxes_cover_masks(synth):
 def test_visibility_counts_are_consistent(synth):
     summary, seq = synth
     imap = seq.instance_map(0)
-    for vis in car_visibility(summary.world, 0, imap):
+    world = summary.world
+    every_pixel = replace(world.config.visibility, max_rays_per_car=10 ** 7)
+    exact = car_visibility(replace(world, config=replace(world.config, visibility=every_pixel)),
+                           0, imap)
+    for vis, sampled in zip(exact, car_visibility(world, 0, imap)):
         assert vis.visible_px == np.count_nonzero(imap == vis.instance_value)
         assert vis.visible_px <= vis.inside_px or vis.inside_px == 0
+        # large silhouettes are counted on a sparser grid by default
+        assert sampled.visible_px == pytest.approx(vis.visible_px, rel=0.05, abs=1)
+        assert sampled.inside_px == pytest.approx(vis.inside_px, rel=0.05, abs=1)
 
 
 # --------------------------------------------------------------------------------------------

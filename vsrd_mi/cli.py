@@ -15,9 +15,11 @@ import sys
 SUBCOMMAND_MODULES: tuple[str, ...] = (
     "vsrd_mi.scene.cli",
     "vsrd_mi.synth.cli",
+    "vsrd_mi.synth.suite_cli",
     "vsrd_mi.autolabel.cli",
     "vsrd_mi.init.cli",
     "vsrd_mi.evaluate.cli",
+    "vsrd_mi.export.cli",
     "vsrd_mi.batch.cli",
     "vsrd_mi.bench.cli",
 )

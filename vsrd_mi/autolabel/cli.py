@@ -58,7 +58,7 @@ def _cmd_autolabel(args: argparse.Namespace) -> int:
     summary = run_batch(tasks, process_target, **where)
     print(f"done {summary.done}, skipped {summary.skipped}, failed {summary.failed} of {summary.total}")
     try:
-        consensus = apply_consensus(Path(args.out) / seq.name, seq, cfg.consensus)
+        consensus = apply_consensus(Path(args.out) / seq.name, seq, cfg.consensus, cfg.heading)
     except (DataError, OSError) as exc:  # the targets' own labels stay as written
         print(f"vsrd-mi autolabel: consensus of parked cars skipped: {exc}", file=sys.stderr)
         return summary.exit_code()

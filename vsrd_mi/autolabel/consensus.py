@@ -10,14 +10,22 @@ frame and fused:
 * contributors: the boxes of instance ``i`` labelled parked, one per target, expressed in the
   optimisation frame of the run's first target (``T_ref @ inv(T_t)``; every optimisation frame
   is gravity-aligned, so this is a rotation about the vertical and a translation);
-* inliers: contributors whose centre lies within ``gate`` metres of the contributors' median
-  centre (a car that was parked in two places, or one target's wrong box, is not averaged in);
-* the fused box: component-wise median of the inliers' centres and sizes, and their mean axis
-  ``yaw = arg(sum_k exp(2 i yaw_k)) / 2`` (period pi: a box turned end for end is the same box),
-  with the sign of the first inlier's heading.
+* weights: a contributor counts ``1 / max(r, ConsensusConfig.near_range)^2``, ``r`` the car's range
+  from its target's camera: stereo depth errors and the image evidence of a car both scale with
+  its range squared, so the target that saw a car from 15 m knows it about 9 times better than one
+  that saw it from 45 m;
+* inliers: contributors whose centre lies within ``gate`` metres of the contributors' weighted
+  median centre (a car that was parked in two places, or one target's wrong box, is not averaged
+  in);
+* the fused box: component-wise weighted median of the inliers' centres and sizes, and their
+  weighted mean axis ``yaw = arg(sum_k w_k exp(2 i yaw_k)) / 2`` (period pi: a box turned end for
+  end is the same box);
+  its front is where the inliers' heading evidence (:mod:`vsrd_mi.optimise.heading`: silhouettes
+  front against back, summed over the targets) points when that sum exceeds the evidence
+  threshold, else where most inliers face (a tie: the first inlier).
 
 The fused box replaces every inlier's box in the labels of that inlier's group; its score is the
-confidence of REFERENCE §7 for the instance, recomputed over all those groups' frames (mean 2D
+confidence of docs/method.md §7 for the instance, recomputed over all those groups' frames (mean 2D
 IoU of the projected box and the instance's mask box, 0 where the instance has no mask). Moving
 cars, and parked cars seen by fewer than ``min_targets`` targets, keep their target's box. The
 per-target results (``boxes/%010d.json``) are never changed, so the step can be rerun at any
@@ -43,7 +51,7 @@ from ..export.kitti_labels import KittiLabel, label_from_box, write_labels
 from ..geometry.boxes import Box3D
 from ..geometry.boxes2d import iou_matrix
 from ..geometry.camera import box_to_2d
-from ..optimise.config import ConsensusConfig
+from ..optimise.config import ConsensusConfig, HeadingConfig
 
 
 @dataclass(frozen=True)
@@ -56,6 +64,8 @@ class TargetBoxes:
     #: Boxes in the target's optimisation frame (:func:`vsrd_mi.data.observations.opt_from_world`).
     boxes: tuple[Box3D, ...]
     confidences: tuple[float, ...]
+    #: Per box, the silhouettes' evidence for the box's own front over its back (0 when none).
+    heading_evidence: tuple[float, ...] = ()
 
     @staticmethod
     def read(path: Path) -> "TargetBoxes":
@@ -64,7 +74,8 @@ class TargetBoxes:
             d = json.loads(Path(path).read_text())
             boxes = tuple(Box3D.from_dict(b) for b in d["boxes"])
             return TargetBoxes(int(d["target"]), tuple(int(f) for f in d["group"]), boxes,
-                               tuple(float(b["confidence"]) for b in d["boxes"]))
+                               tuple(float(b["confidence"]) for b in d["boxes"]),
+                               tuple(float(b.get("heading", {}).get("evidence", 0.0)) for b in d["boxes"]))
         except (OSError, ValueError, KeyError, TypeError) as exc:
             raise DataError(path, f"unreadable target result: {exc}") from exc
 
@@ -87,53 +98,97 @@ class FusedCar:
                 "outliers": list(self.outliers), "spread_m": self.spread, "confidence": self.confidence}
 
 
-def axis_mean(yaws: np.ndarray) -> float:
-    """Mean orientation of period pi, ``arg(sum exp(2 i yaw)) / 2``, turned to point within 90
-    degrees of ``yaws[0]``'s heading."""
+def weighted_median(values: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """Component-wise weighted median of ``values`` (N, D): the value where the cumulative weight
+    reaches half, or the mean of the two values around it where a value's cumulative weight is
+    exactly half (so equal weights give ``np.median``)."""
+    values = np.asarray(values, dtype=np.float64)
+    w = np.asarray(weights, dtype=np.float64)
+    out = np.empty(values.shape[1:])
+    for j in np.ndindex(out.shape):
+        col = values[(slice(None),) + j]
+        order = np.argsort(col, kind="stable")
+        cum = np.cumsum(w[order])
+        half = 0.5 * cum[-1]
+        i = int(np.searchsorted(cum, half))
+        tie = np.isclose(cum[i], half, rtol=1e-12, atol=0.0) and i + 1 < len(col)
+        out[j] = 0.5 * (col[order][i] + col[order][i + 1]) if tie else col[order][i]
+    return out
+
+
+def axis_mean(yaws: np.ndarray, weights: np.ndarray | None = None) -> float:
+    """Weighted mean orientation of period pi, ``arg(sum w exp(2 i yaw)) / 2``, turned to point
+    within 90 degrees of ``yaws[0]``'s heading (equal weights when None)."""
     yaws = np.asarray(yaws, dtype=np.float64)
-    mean = 0.5 * math.atan2(np.sin(2 * yaws).sum(), np.cos(2 * yaws).sum())
+    w = np.ones(len(yaws)) if weights is None else np.asarray(weights, dtype=np.float64)
+    mean = 0.5 * math.atan2((w * np.sin(2 * yaws)).sum(), (w * np.cos(2 * yaws)).sum())
     if math.cos(mean - yaws[0]) < 0:
         mean += math.pi
     return math.atan2(math.sin(mean), math.cos(mean))
 
 
-def fuse_boxes(boxes: list[Box3D], gate: float) -> tuple[Box3D, np.ndarray] | None:
-    """Consensus of one parked car's boxes (one frame): see the module docstring.
+def fused_front(axis: float, yaws: np.ndarray, evidence: np.ndarray, min_evidence: float) -> float:
+    """``axis`` or ``axis + pi``: where the boxes' summed heading evidence points (each box's
+    evidence is for its own yaw) when its magnitude exceeds ``min_evidence``, else where most
+    boxes face (``axis`` on a tie)."""
+    along = np.where(np.cos(np.asarray(yaws) - axis) >= 0, 1.0, -1.0)
+    total = float(np.sum(along * np.asarray(evidence, dtype=np.float64)))
+    votes = total if abs(total) > min_evidence else float(np.sum(along))
+    return axis if votes >= 0 else math.atan2(math.sin(axis + math.pi), math.cos(axis + math.pi))
+
+
+def fuse_boxes(boxes: list[Box3D], gate: float, evidence: np.ndarray | None = None,
+               min_evidence: float = 0.0, weights: np.ndarray | None = None) -> tuple[Box3D, np.ndarray] | None:
+    """Consensus of one parked car's boxes (one frame): see the module docstring. ``evidence``:
+    each box's heading evidence for its own yaw (None: none); ``weights``: each box's weight
+    (None: equal).
 
     Returns the fused box and the inlier mask, or None when fewer than two boxes are inliers.
     """
     centres = np.array([b.centre for b in boxes])
-    inliers = np.linalg.norm(centres - np.median(centres, axis=0), axis=1) <= gate
+    w = np.ones(len(boxes)) if weights is None else np.asarray(weights, dtype=np.float64)
+    inliers = np.linalg.norm(centres - weighted_median(centres, w), axis=1) <= gate
     if inliers.sum() < 2:
         return None
     kept = [b for b, k in zip(boxes, inliers) if k]
-    fused = Box3D(centre=np.median([b.centre for b in kept], axis=0), size=np.median([b.size for b in kept], axis=0),
-                  yaw=axis_mean(np.array([b.yaw for b in kept])), instance_id=kept[0].instance_id)
+    wk = w[inliers]
+    yaws = np.array([b.yaw for b in kept])
+    kept_evidence = np.zeros(len(kept)) if evidence is None else np.asarray(evidence, dtype=np.float64)[inliers]
+    yaw = fused_front(axis_mean(yaws, wk), yaws, kept_evidence, min_evidence)
+    fused = Box3D(centre=weighted_median(np.array([b.centre for b in kept]), wk),
+                  size=weighted_median(np.array([b.size for b in kept]), wk), yaw=yaw,
+                  instance_id=kept[0].instance_id)
     return fused, inliers
 
 
 def fuse_parked_cars(results: list[TargetBoxes], to_reference: dict[int, np.ndarray],
-                     cfg: ConsensusConfig) -> list[FusedCar]:
+                     cfg: ConsensusConfig, min_evidence: float = HeadingConfig.min_evidence) -> list[FusedCar]:
     """Fuse every parked instance seen by at least ``cfg.min_targets`` targets.
 
-    ``to_reference[t]`` maps target ``t``'s optimisation frame to the reference frame (4x4).
+    ``to_reference[t]`` maps target ``t``'s optimisation frame to the reference frame (4x4);
+    ``min_evidence`` is the heading evidence that decides a fused car's front
+    (:class:`~vsrd_mi.optimise.config.HeadingConfig`).
     """
-    seen: dict[int, list[tuple[int, Box3D]]] = {}
+    seen: dict[int, list[tuple[int, Box3D, float, float]]] = {}
     for r in results:
-        for b in r.boxes:
-            if not b.dynamic:
-                seen.setdefault(b.instance_id, []).append((r.target, b.transformed(to_reference[r.target])))
+        evidence = r.heading_evidence or (0.0,) * len(r.boxes)
+        for b, e in zip(r.boxes, evidence):
+            if not b.dynamic:  # the box's range from its own target's camera sets its weight
+                weight = 1.0 / max(float(np.linalg.norm(b.centre)), cfg.near_range) ** 2
+                seen.setdefault(b.instance_id, []).append((r.target, b.transformed(to_reference[r.target]), e,
+                                                           weight))
     fused = []
     for iid, items in sorted(seen.items()):
         if len(items) < max(cfg.min_targets, 2):
             continue
-        out = fuse_boxes([b for _, b in items], cfg.gate)
+        out = fuse_boxes([b for _, b, _, _ in items], cfg.gate, np.array([e for _, _, e, _ in items]), min_evidence,
+                         np.array([w for _, _, _, w in items]))
         if out is None or out[1].sum() < cfg.min_targets:
             continue
         box, inliers = out
-        targets = tuple(t for (t, _), k in zip(items, inliers) if k)
-        spread = float(max(np.linalg.norm(b.centre - box.centre) for (_, b), k in zip(items, inliers) if k))
-        fused.append(FusedCar(iid, box, targets, tuple(t for (t, _), k in zip(items, inliers) if not k), spread))
+        targets = tuple(t for (t, *_), k in zip(items, inliers) if k)
+        spread = float(max(np.linalg.norm(b.centre - box.centre) for (_, b, *_), k in zip(items, inliers) if k))
+        fused.append(FusedCar(iid, box, targets, tuple(t for (t, *_), k in zip(items, inliers) if not k), spread))
     return fused
 
 
@@ -153,7 +208,7 @@ def labels_in_frame(boxes: list[Box3D], scores: list[float], cam_to_opt: np.ndar
 
 
 def mask_confidence(box: Box3D, seq: Sequence, frames: list[int], reference: np.ndarray) -> float:
-    """REFERENCE §7's confidence of one parked box with a known instance id: mean over ``frames``
+    """docs/method.md §7's confidence of one parked box with a known instance id: mean over ``frames``
     of the 2D IoU of its projection and the instance's mask box (0 without either).
     ``reference`` maps the world to the box's frame."""
     ious = []
@@ -166,7 +221,8 @@ def mask_confidence(box: Box3D, seq: Sequence, frames: list[int], reference: np.
     return float(np.mean(ious)) if ious else 0.0
 
 
-def apply_consensus(seq_dir: str | Path, seq: Sequence, cfg: ConsensusConfig) -> dict:
+def apply_consensus(seq_dir: str | Path, seq: Sequence, cfg: ConsensusConfig,
+                    heading: HeadingConfig = HeadingConfig()) -> dict:
     """Fuse the parked cars of every finished target under ``seq_dir`` and rewrite the labels of
     the groups they appear in (atomically); write ``seq_dir/consensus.json``. Returns its content.
 
@@ -188,7 +244,7 @@ def apply_consensus(seq_dir: str | Path, seq: Sequence, cfg: ConsensusConfig) ->
         return report
     opt = {r.target: opt_from_world(seq.cam0_to_world(r.target)) for r in results}
     to_ref = {t: opt[results[0].target] @ np.linalg.inv(T) for t, T in opt.items()}
-    fused = fuse_parked_cars(results, to_ref, cfg) if cfg.enabled else []
+    fused = fuse_parked_cars(results, to_ref, cfg, heading.min_evidence) if cfg.enabled else []
     group_of = {r.target: r.group for r in results}
     fused = [FusedCar(c.instance_id, c.box, c.targets, c.outliers, c.spread,
                       mask_confidence(c.box, seq, sorted({f for t in c.targets for f in group_of[t]}),

@@ -2,7 +2,7 @@
 
 :func:`process_target` is the batch job (:mod:`vsrd_mi.batch`): load the target's observations,
 initialise boxes (stereo initialisation or the documented default), optimise, compute the
-confidence (REFERENCE §7) and write, atomically,
+confidence (docs/method.md §7) and write, atomically,
 
 * ``labels/%010d.txt``: KITTI labels for the target and every frame of its group (boxes moved
   into each frame by pose and, for dynamic cars, by velocity), score = confidence;
@@ -14,6 +14,8 @@ keeps every target's own boxes).
 """
 
 from __future__ import annotations
+
+import dataclasses
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
@@ -29,13 +31,14 @@ from ..geometry.boxes import Box3D
 from ..geometry.boxes2d import iou_matrix
 from ..init.sequence import initialise_target
 from ..optimise.config import PRESETS, AutolabelConfig
+from ..optimise.heading import decide_headings
 from ..optimise.optimiser import BoxOptimiser
 from ..scene.initial import default_initial_boxes
 from .consensus import labels_in_frame
 
 
 def confidence(boxes: list[Box3D], obs: Observations) -> np.ndarray:
-    """Per-box confidence (REFERENCE §7): mean 2D IoU of projected vs mask boxes over the frames
+    """Per-box confidence (docs/method.md §7): mean 2D IoU of projected vs mask boxes over the frames
     of the target's group (target included), Hungarian-matched (maximised); in [0, 1]."""
     frames = np.flatnonzero(obs.in_group | (np.arange(obs.num_frames) == 0))
     n = len(boxes)
@@ -82,12 +85,15 @@ def process_target(task: TargetTask) -> TargetResult:
     start, init_ref, note = initial_boxes(seq, spec, obs, cfg)
     optimiser = BoxOptimiser(obs, start, cfg, init_boxes=init_ref)
     result = optimiser.run()
-    conf = confidence(result.boxes, obs)
+    index = np.array([int(np.flatnonzero(obs.instance_ids == i)[0]) for i in result.instance_ids])
+    headings = decide_headings(result.boxes, index, obs, cfg.heading)
+    boxes = [h.box for h in headings]
+    conf = confidence(boxes, obs)
     out = task.sequence_dir
     outputs = []
     group = [int(obs.frames[f]) for f in np.flatnonzero(obs.in_group | (np.arange(obs.num_frames) == 0))]
     for f in np.flatnonzero(obs.in_group | (np.arange(obs.num_frames) == 0)):
-        labels = labels_in_frame(result.boxes, conf, obs.cam_to_opt[f], obs.K[f], obs.image_size, float(obs.dt[f]))
+        labels = labels_in_frame(boxes, conf, obs.cam_to_opt[f], obs.K[f], obs.image_size, float(obs.dt[f]))
         rel = f"labels/{int(obs.frames[f]):010d}.txt"
         (out / "labels").mkdir(parents=True, exist_ok=True)
         write_labels(out / rel, labels)
@@ -97,14 +103,15 @@ def process_target(task: TargetTask) -> TargetResult:
         "sources": [int(s) for s in spec.sources], "selection_note": spec.note, "initialisation": note,
         "config": cfg.to_dict(), "steps": result.steps, "seconds": result.seconds,
         "stopped_early": result.stopped_early,
-        "boxes": [{**b.to_dict(), "confidence": float(c)} for b, c in zip(result.boxes, conf)],
+        "boxes": [{**h.box.to_dict(), "confidence": float(c), "heading": h.to_dict()} for h, c in zip(headings, conf)],
         "loss": {k: {"first": v[0], "last": v[-1], "min": min(v)} for k, v in result.loss_history.items() if v},
     }
     rel = f"boxes/{int(task.frame):010d}.json"
     atomic_write_json(out / rel, summary)
     outputs.append(rel)
     if vis:  # after the labels; a failing visual is a warning in the JSON, never a failed target
-        report = write_visuals(out / "vis" / f"{int(task.frame):010d}", seq, optimiser, result, conf)
+        report = write_visuals(out / "vis" / f"{int(task.frame):010d}", seq, optimiser,
+                               dataclasses.replace(result, boxes=boxes), conf)
         summary["visuals"] = report.to_dict(relative_to=out)
         atomic_write_json(out / rel, summary)
         outputs.extend(summary["visuals"]["files"])

@@ -181,7 +181,8 @@ def _worker(root: str, targets: list[int], cfg: dict, out_dir: str, result_path:
 
     t = time.perf_counter()
     try:
-        apply_consensus(Path(out_dir) / seq.name, seq, AutolabelConfig.from_dict(cfg).consensus)
+        full = AutolabelConfig.from_dict(cfg)
+        apply_consensus(Path(out_dir) / seq.name, seq, full.consensus, full.heading)
         consensus_error = None
     except Exception as exc:  # recorded; the targets' own labels are scored
         consensus_error = f"{type(exc).__name__}: {exc}"

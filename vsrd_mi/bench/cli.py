@@ -17,6 +17,9 @@ BENCH_MODULES: tuple[str, ...] = (
     "vsrd_mi.bench.residual_scenes",
     "vsrd_mi.bench.residual_trained",
     "vsrd_mi.bench.autolabel",
+    "vsrd_mi.bench.init_accuracy",
+    "vsrd_mi.bench.memory",
+    "vsrd_mi.bench.real_sample",
 )
 
 

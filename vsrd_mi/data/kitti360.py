@@ -1,4 +1,4 @@
-"""KITTI-360 readers: calibration, poses, images, instance maps and 3D boxes (REFERENCE §8).
+"""KITTI-360 readers: calibration, poses, images, instance maps and 3D boxes (docs/method.md §8).
 
 Files are read directly from the KITTI-360 layout below ``root`` (no preprocessing step, no cache)::
 

@@ -1,4 +1,4 @@
-"""Writers for the KITTI-360 layout read by :mod:`vsrd_mi.data.kitti360` (REFERENCE §8).
+"""Writers for the KITTI-360 layout read by :mod:`vsrd_mi.data.kitti360` (docs/method.md §8).
 
 They write exactly what the readers accept, so code that produces data (tests, synthetic scenes)
 and the loader share one description of the format.

@@ -10,7 +10,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from .labels import CAR_LABEL_ID, INSTANCE_FACTOR
+from .labels import CAR_LABEL_ID, INSTANCE_FACTOR, OCCLUDING_LABEL_IDS
 
 #: Smallest and largest instance-map value of a car (``26 * 1000 + 1`` .. ``26 * 1000 + 999``).
 CAR_VALUE_MIN = CAR_LABEL_ID * INSTANCE_FACTOR + 1
@@ -18,6 +18,15 @@ CAR_VALUE_MAX = CAR_LABEL_ID * INSTANCE_FACTOR + INSTANCE_FACTOR - 1
 
 #: Default length scale (pixels) of the soft sampling weight ``sigmoid(signed distance / scale)``.
 SOFT_WEIGHT_SCALE_PX = 10.0
+#: Order of the sides in :func:`open_sides`: those of a 2D box ``(x1, y1, x2, y2)``.
+SIDES = ("left", "top", "right", "bottom")
+#: A side of a mask is open when at least this share of its outermost pixels (those within
+#: :data:`SIDE_BAND_PX` of the side) border an occluder or the image edge.
+OPEN_SIDE_FRACTION = 0.25
+#: Pixels from a side of the tight box that count as that side's outermost mask pixels, and how far
+#: beyond each of them (in the side's direction) an occluder is looked for.
+SIDE_BAND_PX = 2
+SIDE_REACH_PX = 2
 
 
 def car_values(instance_map: np.ndarray) -> np.ndarray:
@@ -66,6 +75,48 @@ def valid_car_ids(instance_map: np.ndarray, min_area: int, min_box_side: float) 
         if min(w, h) >= min_box_side:
             out.add(int(v))
     return frozenset(out)
+
+
+def occluder_map(instance_map: np.ndarray) -> np.ndarray:
+    """Pixels that may hide a car: every car, and every class that stands in front of cars
+    (:data:`~vsrd_mi.data.labels.OCCLUDING_LABEL_IDS`: people, vehicles, poles, signs, vegetation,
+    bins, ...), whether a thing with an instance id (``label * 1000 + id``) or bare stuff."""
+    labels = np.where(instance_map >= INSTANCE_FACTOR, instance_map // INSTANCE_FACTOR, instance_map)
+    return np.isin(labels, OCCLUDING_LABEL_IDS)
+
+
+def open_sides(mask: np.ndarray, occluders: np.ndarray) -> np.ndarray:
+    """Which sides ``(left, top, right, bottom)`` of a mask's tight box may not be the object's.
+
+    The mask's outermost pixels on a side (within :data:`SIDE_BAND_PX` of it) are looked past, up to
+    :data:`SIDE_REACH_PX` pixels outwards: where the image ends or an occluder (``occluders``, e.g.
+    :func:`occluder_map`, the mask's own pixels aside) lies there, the object may go on behind it.
+    A side is open when at least :data:`OPEN_SIDE_FRACTION` of its outermost pixels are. The test
+    is conservative: an occluder behind the car opens a side too, which only drops a constraint.
+    Returns a (4,) bool array (all False for an empty mask).
+    """
+    mask = np.asarray(mask, dtype=bool)
+    out = np.zeros(4, dtype=bool)
+    ys, xs = np.nonzero(mask)
+    if len(xs) == 0:
+        return out
+    H, W = mask.shape
+    blocked = np.asarray(occluders, dtype=bool) & ~mask
+    bounds = (xs.min(), ys.min(), xs.max(), ys.max())
+    # (coordinate array, extreme, outward step along x, along y)
+    for k, (coord, extreme, dx, dy) in enumerate(((xs, bounds[0], -1, 0), (ys, bounds[1], 0, -1),
+                                                  (xs, bounds[2], 1, 0), (ys, bounds[3], 0, 1))):
+        edge = np.abs(coord - extreme) < SIDE_BAND_PX
+        ex, ey = xs[edge], ys[edge]
+        hit = np.zeros(len(ex), dtype=bool)
+        for step in range(1, SIDE_REACH_PX + 1):
+            qx, qy = ex + dx * step, ey + dy * step
+            outside = (qx < 0) | (qx >= W) | (qy < 0) | (qy >= H)
+            inside = ~outside
+            hit |= outside
+            hit[inside] |= blocked[qy[inside], qx[inside]]
+        out[k] = hit.mean() >= OPEN_SIDE_FRACTION
+    return out
 
 
 def _distance_to_zero(m: np.ndarray) -> np.ndarray:
@@ -119,7 +170,7 @@ def signed_distance(mask: np.ndarray) -> np.ndarray:
 
 
 def soft_weight(masks: np.ndarray, scale: float = SOFT_WEIGHT_SCALE_PX) -> np.ndarray:
-    """Ray-sampling weight of one frame: ``sigmoid(signed distance / scale)`` (REFERENCE §3).
+    """Ray-sampling weight of one frame: ``sigmoid(signed distance / scale)`` (docs/method.md §3).
 
     ``masks`` is (N, H, W) bool for the N target instances. Instances are combined by the maximum
     of their per-instance weights, which (sigmoid being monotone) is the sigmoid of the largest

@@ -1,6 +1,6 @@
 """Everything the optimiser needs about one target frame, in the optimisation frame.
 
-Optimisation frame (REFERENCE §1): the target camera rotated about its x axis so that its y axis is
+Optimisation frame (docs/method.md §1): the target camera rotated about its x axis so that its y axis is
 gravity-aligned (pitch removed, roll kept); x right, y down, z forward, origin at the target camera
 centre. KITTI-360's world is z-up, so "down" is world ``-z``.
 
@@ -19,7 +19,8 @@ import numpy as np
 from ..geometry.boxes import Box3D
 from ..geometry.camera import box_to_2d
 from .kitti360 import Sequence
-from .masks import SOFT_WEIGHT_SCALE_PX, passes_size_filter, soft_weight, tight_box
+from .masks import (SOFT_WEIGHT_SCALE_PX, occluder_map, open_sides, passes_size_filter, soft_weight,
+                    tight_box)
 from .selection import SelectionConfig, TargetSpec
 
 #: World "up" of KITTI-360 (z-up world).
@@ -53,7 +54,7 @@ def opt_from_world(cam_to_world_target: np.ndarray, world_up: np.ndarray = WORLD
 class ObservationConfig:
     """How masks become supervision."""
 
-    #: Length scale (px) of the soft sampling weight ``sigmoid(signed distance / scale)`` (REFERENCE §3).
+    #: Length scale (px) of the soft sampling weight ``sigmoid(signed distance / scale)`` (docs/method.md §3).
     soft_weight_scale_px: float = SOFT_WEIGHT_SCALE_PX
     #: Size filter deciding whether an instance counts as *visible* in a frame (its 2D box then
     #: supervises the projection loss); the same thresholds as target selection.
@@ -90,6 +91,9 @@ class Observations:
     boxes2d: np.ndarray
     #: (F, N) whether the instance passes the size filter in that frame (supervises its 2D box).
     visible: np.ndarray
+    #: (F, N, 4) the sides (left, top, right, bottom) of each mask box that an occluder or the
+    #: image edge may cut short (:func:`~vsrd_mi.data.masks.open_sides`).
+    open_sides: np.ndarray
     #: (F, H, W) float32 soft ray-sampling weights (max over instances, see :func:`soft_weight`).
     weights: np.ndarray
     #: (F,) whether the frame is one of the target's source frames.
@@ -134,11 +138,13 @@ def load_observations(seq: Sequence, spec: TargetSpec,
     masks = np.zeros((F, N, H, W), dtype=bool)
     boxes = np.full((F, N, 4), np.nan)
     visible = np.zeros((F, N), dtype=bool)
+    sides = np.zeros((F, N, 4), dtype=bool)
     weights = np.zeros((F, H, W), dtype=np.float32)
     cam_to_opt = np.zeros((F, 4, 4))
     for i, f in enumerate(frames):
         cam_to_opt[i] = T_opt_world @ seq.cam0_to_world(f)
         instance_map = seq.instance_map(f)
+        occluders = occluder_map(instance_map)
         for n, v in enumerate(ids):
             m = instance_map == v
             masks[i, n] = m
@@ -146,12 +152,14 @@ def load_observations(seq: Sequence, spec: TargetSpec,
             if box is not None:
                 boxes[i, n] = box
                 visible[i, n] = passes_size_filter(m, sel.min_mask_area, sel.min_box_side)
+                sides[i, n] = open_sides(m, occluders)
         weights[i] = soft_weight(masks[i], cfg.soft_weight_scale_px)
     return Observations(
         sequence=seq.name, target=spec.target, frames=np.array(frames, dtype=np.int64),
         dt=np.array(frames, dtype=np.int64) - spec.target, cam_to_opt=cam_to_opt,
         K=np.repeat(seq.calibration.K[None], F, axis=0), image_size=(W, H),
         instance_ids=np.array(ids, dtype=np.int64), masks=masks, boxes2d=boxes, visible=visible,
+        open_sides=sides,
         weights=weights, is_source=np.array([f in spec.sources for f in frames]),
         in_group=np.array([f in spec.group for f in frames]), T_opt_from_world=T_opt_world,
         image_paths_left=[seq.image_path(f, 0) for f in frames],

@@ -1,4 +1,4 @@
-"""Which frames to optimise and which source frames supervise them (REFERENCE §5).
+"""Which frames to optimise and which source frames supervise them (docs/method.md §5).
 
 For a candidate target frame ``t`` with target ids ``I_t`` (cars passing the size filter):
 
@@ -34,7 +34,7 @@ log = logging.getLogger(__name__)
 
 @dataclass(frozen=True)
 class SelectionConfig:
-    """Frame-selection thresholds (defaults: the authors' code, REFERENCE §5)."""
+    """Frame-selection thresholds (defaults: the authors' code, docs/method.md §5)."""
 
     #: Smallest car mask (pixels) that counts as a target instance.
     min_mask_area: int = 128
@@ -194,7 +194,7 @@ def frame_id_sets(seq: Sequence, cfg: SelectionConfig) -> dict[int, frozenset[in
 
 def select_targets(seq: Sequence, cfg: SelectionConfig | None = None,
                    frames: Iterable[int] | None = None) -> list[TargetSpec]:
-    """Frames of ``seq`` to optimise, one :class:`TargetSpec` per group (REFERENCE §5).
+    """Frames of ``seq`` to optimise, one :class:`TargetSpec` per group (docs/method.md §5).
 
     ``frames`` limits which frames may be targets; sources come from the whole sequence.
     """

@@ -20,8 +20,14 @@ Two precision curves are computed from the same devkit matching (:mod:`.matching
 
 Recall is TP / (number of counted ground-truth boxes), the denominator the devkit's recall sampling
 uses (a counted box matched by an ignored detection is neither TP nor FN, so it only lowers the
-reachable recall). A precision of 0/0 (no counted detection above a threshold) is taken as 0. With no counted ground
-truth AP is undefined and reported as None.
+reachable recall). A precision of 0/0 (no counted detection above a threshold) is taken as 0. With
+no counted ground truth AP is undefined and reported as None.
+
+AOS (average orientation similarity, Geiger et al. 2012) replaces the precision ``TP / (TP + FP)``
+by ``sum over TPs of (1 + cos(alpha_gt - alpha_det)) / 2`` divided by ``TP + FP`` at the same
+thresholds, and is sampled and averaged exactly like AP on both curves, so AOS <= AP and AOS = AP
+when every true positive's observation angle is right. The devkit pairs AOS with its 2D-box
+matching; here it comes with each BEV / 3D matching and threshold.
 """
 
 from __future__ import annotations
@@ -31,7 +37,7 @@ from typing import Sequence
 
 import numpy as np
 
-from .matching import FrameMatchInput, frame_threshold_events, match_true_positive_scores
+from .matching import FP, N_COUNTS, SIM, TP, FrameMatchInput, frame_threshold_events, match_true_positive_scores
 
 #: Number of recall samples of the KITTI protocol (recall 0, 1/40, ..., 1).
 N_RECALL_SAMPLES = 41
@@ -56,16 +62,19 @@ CURVE_DESCRIPTIONS = {
 
 @dataclass(frozen=True)
 class APResult:
-    """AP (percent) of one metric / IoU threshold / difficulty, for both precision curves.
+    """AP and AOS (percent) of one metric / IoU threshold / difficulty, for both precision curves.
 
-    ``precision_*`` hold the 41 monotone precision samples; ``n_gt`` is the number of counted
-    ground-truth boxes; ``max_recall`` the recall with every detection kept.
+    ``precision_*`` and ``orientation_*`` hold the 41 monotone precision and orientation-similarity
+    samples; ``n_gt`` is the number of counted ground-truth boxes; ``max_recall`` the recall with
+    every detection kept.
     """
 
     n_gt: int
     max_recall: float
     precision_exact: np.ndarray
     precision_devkit: np.ndarray
+    orientation_exact: np.ndarray
+    orientation_devkit: np.ndarray
 
     @staticmethod
     def _r40(p: np.ndarray) -> float:
@@ -95,9 +104,31 @@ class APResult:
         """AP|R11 of the devkit curve (None without counted ground truth)."""
         return self._r11(self.precision_devkit) if self.n_gt else None
 
+    @property
+    def aos_r40(self) -> float | None:
+        """AOS|R40 of the exact curve (None without counted ground truth)."""
+        return self._r40(self.orientation_exact) if self.n_gt else None
+
+    @property
+    def aos_r11(self) -> float | None:
+        """AOS|R11 of the exact curve (None without counted ground truth)."""
+        return self._r11(self.orientation_exact) if self.n_gt else None
+
+    @property
+    def devkit_aos_r40(self) -> float | None:
+        """AOS|R40 of the devkit curve (None without counted ground truth)."""
+        return self._r40(self.orientation_devkit) if self.n_gt else None
+
+    @property
+    def devkit_aos_r11(self) -> float | None:
+        """AOS|R11 of the devkit curve (None without counted ground truth)."""
+        return self._r11(self.orientation_devkit) if self.n_gt else None
+
     def to_dict(self) -> dict:
         return {"R40": self.r40, "R11": self.r11, "devkit_R40": self.devkit_r40,
-                "devkit_R11": self.devkit_r11, "n_gt": self.n_gt, "max_recall": self.max_recall}
+                "devkit_R11": self.devkit_r11, "AOS_R40": self.aos_r40, "AOS_R11": self.aos_r11,
+                "devkit_AOS_R40": self.devkit_aos_r40, "devkit_AOS_R11": self.devkit_aos_r11,
+                "n_gt": self.n_gt, "max_recall": self.max_recall}
 
 
 def devkit_thresholds(tp_scores: Sequence[float], n_gt: int,
@@ -121,15 +152,17 @@ def devkit_thresholds(tp_scores: Sequence[float], n_gt: int,
     return thresholds
 
 
-def _precision(tp: np.ndarray, fp: np.ndarray) -> np.ndarray:
-    """``tp / (tp + fp)`` with 0/0 taken as 0."""
+def _ratio(numerator: np.ndarray, tp: np.ndarray, fp: np.ndarray) -> np.ndarray:
+    """``numerator / (tp + fp)`` with 0/0 taken as 0 (precision: ``numerator = tp``; AOS: the
+    summed orientation similarity)."""
     denom = tp + fp
-    return np.where(denom > 0, tp / np.maximum(denom, 1), 0.0)
+    return np.where(denom > 0, numerator / np.maximum(denom, 1), 0.0)
 
 
 def _exact_samples(tp: np.ndarray, precision: np.ndarray, n_gt: int) -> np.ndarray:
     """Monotone precision at recall ``k / 40`` from curve points with ``tp`` true positives."""
     steps = N_RECALL_SAMPLES - 1
+    tp = np.rint(tp).astype(np.int64)
     out = np.zeros(N_RECALL_SAMPLES)
     for k in range(N_RECALL_SAMPLES):
         reach = tp * steps >= k * n_gt  # recall >= k / steps, in exact integer arithmetic
@@ -138,10 +171,18 @@ def _exact_samples(tp: np.ndarray, precision: np.ndarray, n_gt: int) -> np.ndarr
     return out
 
 
+def _devkit_samples(values: np.ndarray) -> np.ndarray:
+    """The devkit's samples: value at the k-th kept threshold for sample k (0 beyond the last),
+    made monotone (maximum over the later samples)."""
+    p = np.zeros(N_RECALL_SAMPLES)
+    p[:len(values)] = values
+    return np.maximum.accumulate(p[::-1])[::-1]
+
+
 def average_precision(frames: Sequence[FrameMatchInput], min_overlap: float) -> APResult:
     """AP of detections against ground truth over ``frames`` at overlap > ``min_overlap``."""
     n_gt = sum(f.n_counted_gt for f in frames)
-    levels, deltas = [np.empty(0)], [np.empty((0, 3), dtype=np.int64)]
+    levels, deltas = [np.empty(0)], [np.empty((0, N_COUNTS))]
     tp_scores: list[float] = []
     for f in frames:
         lv, dl = frame_threshold_events(f, min_overlap)
@@ -152,27 +193,28 @@ def average_precision(frames: Sequence[FrameMatchInput], min_overlap: float) -> 
     order = np.argsort(all_levels, kind="stable")
     sorted_levels = all_levels[order]
     # suffix[k] = sum of the deltas of events k.. (ascending score order); suffix[E] = 0.
-    suffix = np.concatenate([np.cumsum(all_deltas[order][::-1], axis=0)[::-1],
-                             np.zeros((1, 3), dtype=np.int64)])
-    base = np.array([0, 0, n_gt])
+    suffix = np.concatenate([np.cumsum(all_deltas[order][::-1], axis=0)[::-1], np.zeros((1, N_COUNTS))])
+    base = np.array([0.0, 0.0, n_gt, 0.0])
 
     def counts(thresholds: np.ndarray) -> np.ndarray:
-        """Sequence-wide (TP, FP, FN), shape (T, 3), keeping detections with score >= threshold."""
+        """Sequence-wide (TP, FP, FN, similarity), shape (T, 4), keeping detections with
+        score >= threshold."""
         return base + suffix[np.searchsorted(sorted_levels, thresholds, side="left")]
 
-    precision_exact = np.zeros(N_RECALL_SAMPLES)
-    precision_devkit = np.zeros(N_RECALL_SAMPLES)
+    zeros = np.zeros(N_RECALL_SAMPLES)
+    precision_exact, precision_devkit, orientation_exact, orientation_devkit = zeros, zeros, zeros, zeros
     max_recall = 0.0
     if n_gt > 0 and len(sorted_levels) > 0:
         c = counts(np.unique(sorted_levels))
-        precision_exact = _exact_samples(c[:, 0], _precision(c[:, 0], c[:, 1]), n_gt)
-        max_recall = float(c[:, 0].max() / n_gt)
+        precision_exact = _exact_samples(c[:, TP], _ratio(c[:, TP], c[:, TP], c[:, FP]), n_gt)
+        orientation_exact = _exact_samples(c[:, TP], _ratio(c[:, SIM], c[:, TP], c[:, FP]), n_gt)
+        max_recall = float(np.rint(c[:, TP].max()) / n_gt)
         thresholds = np.array(devkit_thresholds(tp_scores, n_gt))
         if len(thresholds):
             c = counts(thresholds)
-            p = np.zeros(N_RECALL_SAMPLES)
-            p[:len(thresholds)] = _precision(c[:, 0], c[:, 1])
-            precision_devkit = np.maximum.accumulate(p[::-1])[::-1]
+            precision_devkit = _devkit_samples(_ratio(c[:, TP], c[:, TP], c[:, FP]))
+            orientation_devkit = _devkit_samples(_ratio(c[:, SIM], c[:, TP], c[:, FP]))
     return APResult(n_gt=n_gt, max_recall=max_recall, precision_exact=precision_exact,
-                    precision_devkit=precision_devkit)
+                    precision_devkit=precision_devkit, orientation_exact=orientation_exact,
+                    orientation_devkit=orientation_devkit)
 

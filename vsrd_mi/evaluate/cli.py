@@ -8,7 +8,7 @@ import sys
 from typing import Callable
 
 from ..errors import DataError
-from .sequence import METRIC_3D, METRIC_BEV, EvalConfig, evaluate_sequence
+from .sequence import GT_BOXES_DESCRIPTIONS, GT_BOXES_MASK, METRIC_3D, METRIC_BEV, EvalConfig, evaluate_sequence
 
 #: Column layout of the AP table: (difficulty, result key) pairs, per precision curve.
 AP_COLUMNS = {
@@ -17,6 +17,11 @@ AP_COLUMNS = {
                ("easy", "devkit_R11"), ("hard", "devkit_R11")],
 }
 METRIC_LABELS = {METRIC_BEV: "AP_BEV", METRIC_3D: "AP_3D"}
+#: Row labels of the AOS table, per matching metric.
+AOS_LABELS = {METRIC_BEV: "AOS(BEV", METRIC_3D: "AOS(3D"}
+#: Breakdown tables printed after the matched pairs (result key, title).
+BREAKDOWNS = (("by_class", "vehicle class"), ("by_distance", "distance"),
+              ("by_occlusion", "occlusion"), ("by_parking", "parking"))
 #: Table titles of the two precision curves (their definitions are in the JSON ``protocol``).
 CURVE_TITLES = {
     "exact": "AP, exact precision curve (every score threshold)",
@@ -45,39 +50,78 @@ def _fmt(value: float | None, spec: str) -> str:
     return "-" if value is None else format(value, spec)
 
 
-def format_table(result: dict) -> str:
-    """Human-readable AP and matched-pair tables of an :func:`evaluate_sequence` result."""
-    counts = result["counts"]
-    lines = [f"Sequence {result['sequence']}: {len(result['frames'])} frames "
-             f"({len(result['frames_without_predictions'])} without predictions), "
-             f"{result['n_pred_total']} Car predictions; counted GT "
-             + ", ".join(f"{d} {c['n_gt']}" for d, c in counts.items())]
+def _pct(value: float | None) -> str:
+    return "-" if value is None else f"{100.0 * value:.0f}%"
+
+
+def _bias(summary: dict, extent: str) -> str:
+    bias = summary.get("size_bias")
+    return "-" if bias is None else f"{100.0 * bias[extent]['mean_rel']:+.1f}%"
+
+
+def _ap_tables(result: dict) -> list[str]:
+    lines: list[str] = []
     for curve, columns in AP_COLUMNS.items():
-        lines += ["", CURVE_TITLES[curve],
-                  f"{'':14s}" + "".join(f"{d.capitalize() + ' ' + k.split('_')[-1]:>10s}"
-                                        for d, k in columns)]
+        header = f"{'':14s}" + "".join(f"{d.capitalize() + ' ' + k.split('_')[-1]:>10s}" for d, k in columns)
+        lines += ["", CURVE_TITLES[curve], header]
         for metric in (METRIC_BEV, METRIC_3D):
             for threshold, by_difficulty in result["ap"][metric].items():
                 row = f"{METRIC_LABELS[metric] + '@' + threshold:14s}"
                 row += "".join(f"{_fmt(by_difficulty[d][k], '.2f'):>10s}" for d, k in columns)
                 lines.append(row)
-    protocol = result["protocol"]
+        lines.append("AOS (orientation similarity of the same matches):")
+        for metric in (METRIC_BEV, METRIC_3D):
+            for threshold, by_difficulty in result["ap"][metric].items():
+                row = f"{AOS_LABELS[metric] + '@' + threshold + ')':14s}"
+                row += "".join(f"{_fmt(by_difficulty[d][k.replace('R', 'AOS_R', 1)], '.2f'):>10s}"
+                               for d, k in columns)
+                lines.append(row)
+    return lines
+
+
+def _summary_header(first: str) -> str:
+    return (f"{first:12s}{'n_gt':>6s}{'match':>7s}{'miss':>6s}{'IoU_BEV':>9s}{'IoU_3D':>8s}{'rw3D':>7s}"
+            f"{'centre_m':>10s}{'yaw180':>8s}{'head':>6s}{'dL':>8s}{'dW':>8s}{'dH':>8s}")
+
+
+def _summary_row(name: str, s: dict) -> str:
+    return (f"{name:12s}{s['n_gt']:6d}{s['n_matched']:7d}{_pct(s['missed_share']):>6s}"
+            f"{_fmt(s['mean_iou_bev'], '.3f'):>9s}{_fmt(s['mean_iou_3d'], '.3f'):>8s}"
+            f"{_fmt(s['recall_weighted_iou_3d'], '.3f'):>7s}{_fmt(s['centre_error_m'], '.3f'):>10s}"
+            f"{_fmt(s['yaw_error_deg'], '.2f'):>8s}{_pct(s['heading_accuracy']):>6s}"
+            f"{_bias(s, 'length'):>8s}{_bias(s, 'width'):>8s}{_bias(s, 'height'):>8s}")
+
+
+def format_table(result: dict) -> str:
+    """Human-readable AP / AOS, matched-pair and breakdown tables of an :func:`evaluate_sequence`
+    result."""
+    counts, protocol = result["counts"], result["protocol"]
+    lines = [f"Sequence {result['sequence']}: {len(result['frames'])} frames "
+             f"({len(result['frames_without_predictions'])} without predictions), "
+             f"{result['n_pred_total']} Car predictions; counted GT "
+             + ", ".join(f"{d} {c['n_gt']}" for d, c in counts.items()),
+             f"Ground-truth 2D boxes: {protocol['gt_boxes']} ({protocol['gt_boxes_rule']})"]
+    lines += _ap_tables(result)
     lines += ["", f"Matched pairs (Hungarian on 3D IoU > {protocol['pair_min_iou']:g}, "
-                  f"GT 2D height > {protocol['pair_min_height']:g} px; rw = unmatched GT count as 0; "
-                  f"yaw error modulo 180 deg)",
-              f"{'':9s}{'n_gt':>6s}{'match':>7s}{'IoU_BEV':>9s}{'IoU_3D':>8s}{'rwBEV':>7s}{'rw3D':>7s}"
-              f"{'centre_m':>10s}{'yaw_deg':>9s}"]
-    for group, s in result["pairs"].items():
-        lines.append(f"{group:9s}{s['n_gt']:6d}{s['n_matched']:7d}{_fmt(s['mean_iou_bev'], '.3f'):>9s}"
-                     f"{_fmt(s['mean_iou_3d'], '.3f'):>8s}{_fmt(s['recall_weighted_iou_bev'], '.3f'):>7s}"
-                     f"{_fmt(s['recall_weighted_iou_3d'], '.3f'):>7s}{_fmt(s['centre_error_m'], '.3f'):>10s}"
-                     f"{_fmt(s['yaw_error_deg'], '.2f'):>9s}")
+                  f"GT 2D height > {protocol['pair_min_height']:g} px): miss = GT without a box, rw3D = "
+                  f"unmatched GT count as 0, yaw180 = mean yaw error modulo 180 deg, head = heading "
+                  f"right (error < 90 deg), dL/dW/dH = mean signed size error relative to the truth",
+              _summary_header("")]
+    lines += [_summary_row(group, s) for group, s in result["pairs"].items()]
+    for key, title in BREAKDOWNS:
+        groups = result["breakdown"].get(key)
+        if groups is None:
+            if key in ("by_class", "by_occlusion", "by_parking"):
+                lines += ["", f"By {title}: not available (no attributes sidecar with it)"]
+            continue
+        lines += ["", f"By {title}:", _summary_header("")]
+        lines += [_summary_row(name, s) for name, s in groups.items()]
     return "\n".join(lines)
 
 
 def run(args: argparse.Namespace) -> int:
     """Entry point of ``vsrd-mi eval``; returns the exit code (1 on bad input)."""
-    config = EvalConfig(gt_visible_in_mask=args.visible_only)
+    config = EvalConfig(gt_boxes=args.gt_boxes, gt_visible_in_mask=args.visible_only)
     try:
         result = evaluate_sequence(args.pred, args.gt, args.sequence, frames=args.frames, config=config)
     except DataError as exc:
@@ -91,9 +135,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     """Add the ``eval`` sub-command."""
     p = subparsers.add_parser(
         "eval", help="evaluate KITTI-format pseudo labels against KITTI-360 ground truth",
-        description="AP_BEV / AP_3D (R40 and R11, exact and devkit precision curves) at IoU 0.3, "
-                    "0.5 and 0.7 for Easy (2D height > 40 px) and Hard (> 25 px) cars, and mean "
-                    "IoUs / errors of Hungarian-matched pairs split static / dynamic.")
+        description="AP_BEV / AP_3D and AOS (R40 and R11, exact and devkit precision curves) at "
+                    "IoU 0.3, 0.5 and 0.7 for Easy (2D height > 40 px) and Hard (> 25 px) cars; mean "
+                    "IoUs, errors, heading accuracy, size bias and the share of cars without a box "
+                    "of Hungarian-matched pairs, split static / dynamic and by vehicle class, "
+                    "distance, occlusion and parking (the last three need the attributes sidecar "
+                    "<root>/data_3d_bboxes/train/<seq>.attributes.json). See docs/evaluation.md.")
     p.add_argument("--pred", required=True,
                    help="prediction directory: DIR/%%010d.txt or DIR/<sequence>/labels/%%010d.txt")
     p.add_argument("--gt", required=True, help="KITTI-360 root (calibration, data_poses, data_2d_raw, "
@@ -103,8 +150,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--frames", type=parse_frames, default=None,
                    help="frames to evaluate, e.g. 100-200 or 5,7-9; listed frames without a "
                         "prediction file count as all missed (default: every frame with a file)")
+    p.add_argument("--gt-boxes", choices=sorted(GT_BOXES_DESCRIPTIONS), default=GT_BOXES_MASK,
+                   help="where the ground truth's 2D boxes (difficulty) and set come from: 'mask' "
+                        "(default, the authors' protocol): cars in the frame's instance map, tight box of "
+                        "the visible pixels; 'projected': every car of the 3D-box file, its 3D box "
+                        "projected into the image. The output names the one used")
     p.add_argument("--visible-only", action="store_true",
-                   help="keep only GT cars present in the frame's instance map")
+                   help="with --gt-boxes projected: keep only GT cars present in the frame's instance map")
     p.add_argument("--json", action="store_true", help="print the full result as JSON")
     func: Callable[[argparse.Namespace], int] = run
     p.set_defaults(func=func)

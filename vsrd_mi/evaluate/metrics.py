@@ -1,35 +1,51 @@
-"""Box-quality statistics of one-to-one matched (prediction, ground truth) pairs.
+"""Box-quality statistics of one-to-one matched (prediction, ground truth) pairs, and breakdowns.
 
 Per frame, predictions and ground truth are paired by the Hungarian algorithm
 (:func:`scipy.optimize.linear_sum_assignment`) maximising the total 3D IoU; a pair counts as
-matched when its 3D IoU exceeds ``min_iou`` (0 by default: the boxes overlap at all). Reported,
-for all ground truth and split into static / dynamic (the ground truth's ``dynamic`` flag):
+matched when its 3D IoU exceeds ``min_iou`` (0 by default: the boxes overlap at all). Every counted
+ground-truth car becomes a :class:`GroundTruthRecord` (matched or not); :func:`summarise` reports,
+for any list of records:
 
+* ``n_gt``, ``n_matched`` and ``missed_share``: the share of the cars left without a box;
 * ``mean_iou_bev`` / ``mean_iou_3d``: mean IoU over matched pairs;
-* ``recall_weighted_iou_bev`` / ``recall_weighted_iou_3d``: the same sums divided by the number of
-  ground-truth boxes, i.e. every unmatched ground-truth box counts as IoU 0;
+* ``recall_weighted_iou_bev`` / ``recall_weighted_iou_3d``: the same sums divided by ``n_gt``,
+  i.e. every unmatched ground-truth box counts as IoU 0;
 * ``centre_error_m``: mean Euclidean distance of the box centres (metres);
-* ``yaw_error_deg``: mean yaw difference modulo 180 degrees (a box turned by 180 degrees is the same
-  box, so the error is in [0, 90]; the heading's direction is not judged);
-* ``size_error_m``: mean absolute error of the full (w, h, l) extents (metres), per axis.
+* ``yaw_error_deg`` / ``yaw_error_median_deg``: mean / median yaw difference modulo 180 degrees
+  (a box turned end for end has the same axis; in [0, 90]);
+* ``heading_accuracy``: share of matched pairs whose heading is right, ``|yaw error| < 90`` deg
+  on the full circle (front and back told apart);
+* ``size_error_m``: mean absolute error of the full (w, h, l) extents (metres), per axis;
+* ``size_bias``: signed error prediction - truth of ``length``, ``width``, ``height``, each with
+  ``mean_m``, ``median_m`` (metres) and ``mean_rel``, ``median_rel`` (relative to the truth).
 
-Means over no pairs are None.
+:class:`PairStatistics` collects the records of a sequence and splits them by ground truth
+(static / dynamic) and, in :meth:`PairStatistics.breakdowns`, by vehicle class, distance,
+occlusion and parking kind (:mod:`.attributes`). Means over no pairs are None.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Sequence
+from typing import Callable, Sequence
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 from ..geometry.boxes import Box3D, wrap_angle
 from ..geometry.iou3d import iou_matrices
+from .attributes import UNKNOWN, CarAttributes
 
 #: Names of the ground-truth groups in the statistics.
 GROUP_ALL, GROUP_STATIC, GROUP_DYNAMIC = "all", "static", "dynamic"
 GROUPS = (GROUP_ALL, GROUP_STATIC, GROUP_DYNAMIC)
+
+#: A heading is right when the full-circle yaw error is below this (degrees): front and back
+#: are told apart, any smaller error is an error of the axis.
+HEADING_RIGHT_DEG = 90.0
+
+#: Names and ``Box3D.size`` indices of the three extents in the size bias.
+EXTENTS = (("length", 2), ("width", 0), ("height", 1))
 
 
 @dataclass(frozen=True)
@@ -40,6 +56,27 @@ class MatchedPair:
     pred: Box3D
     iou_bev: float
     iou_3d: float
+
+
+@dataclass(frozen=True)
+class GroundTruthRecord:
+    """A counted ground-truth car of one frame, its attributes and its match (None: missed)."""
+
+    frame: int
+    gt: Box3D
+    attributes: CarAttributes = UNKNOWN
+    pred: Box3D | None = None
+    iou_bev: float = 0.0
+    iou_3d: float = 0.0
+
+    @property
+    def matched(self) -> bool:
+        return self.pred is not None
+
+    @property
+    def distance_m(self) -> float:
+        """Horizontal distance of the car's centre from the camera (metres, x-z plane)."""
+        return float(np.hypot(self.gt.centre[0], self.gt.centre[2]))
 
 
 def hungarian_pairs(gt: Sequence[Box3D], pred: Sequence[Box3D], min_iou: float = 0.0
@@ -62,53 +99,158 @@ def yaw_error_mod_pi(a: float, b: float) -> float:
     return min(d, np.pi - d)
 
 
+def heading_error(a: float, b: float) -> float:
+    """Absolute yaw difference on the full circle, in radians, in ``[0, pi]``."""
+    return abs(float(wrap_angle(a - b)))
+
+
+def match_frame(frame: int, gt: Sequence[Box3D], pred: Sequence[Box3D], gt_counted: Sequence[bool],
+                min_iou: float = 0.0, attributes: Sequence[CarAttributes] | None = None
+                ) -> list[GroundTruthRecord]:
+    """Records of the counted ground truth of one frame (all ground truth takes part in the
+    Hungarian matching; ground truth with ``gt_counted`` False is matched but not recorded)."""
+    attributes = list(attributes) if attributes is not None else [UNKNOWN] * len(gt)
+    if len(attributes) != len(gt):
+        raise ValueError(f"frame {frame}: {len(gt)} ground-truth boxes but {len(attributes)} attributes")
+    matches = {i: (j, bev, iou3d) for i, j, bev, iou3d in hungarian_pairs(gt, pred, min_iou)}
+    records = []
+    for i, (box, counted) in enumerate(zip(gt, gt_counted)):
+        if not counted:
+            continue
+        if i in matches:
+            j, bev, iou3d = matches[i]
+            records.append(GroundTruthRecord(frame, box, attributes[i], pred[j], bev, iou3d))
+        else:
+            records.append(GroundTruthRecord(frame, box, attributes[i]))
+    return records
+
+
+def _mean(values) -> float | None:
+    return float(np.mean(values)) if len(values) else None
+
+
+def _median(values) -> float | None:
+    return float(np.median(values)) if len(values) else None
+
+
+def heading_accuracy(records: Sequence[GroundTruthRecord]) -> float | None:
+    """Share of the matched records whose heading is right (see :data:`HEADING_RIGHT_DEG`)."""
+    errors = [np.degrees(heading_error(r.pred.yaw, r.gt.yaw)) for r in records if r.matched]
+    return float(np.mean(np.array(errors) < HEADING_RIGHT_DEG)) if errors else None
+
+
+def size_bias(records: Sequence[GroundTruthRecord]) -> dict[str, dict] | None:
+    """Signed size error (prediction - truth) of the matched records per extent (see module)."""
+    matched = [r for r in records if r.matched]
+    if not matched:
+        return None
+    pred = np.array([r.pred.size for r in matched])
+    gt = np.array([r.gt.size for r in matched])
+    out = {}
+    for name, axis in EXTENTS:
+        diff = pred[:, axis] - gt[:, axis]
+        rel = diff / gt[:, axis]
+        out[name] = {"mean_m": float(diff.mean()), "median_m": float(np.median(diff)),
+                     "mean_rel": float(rel.mean()), "median_rel": float(np.median(rel))}
+    return out
+
+
+def summarise(records: Sequence[GroundTruthRecord]) -> dict:
+    """Counts, IoUs and errors of ``records`` (JSON-ready; see the module docstring)."""
+    matched = [r for r in records if r.matched]
+    n_gt = len(records)
+    bev = np.array([r.iou_bev for r in matched])
+    iou3d = np.array([r.iou_3d for r in matched])
+    centre = [float(np.linalg.norm(r.pred.centre - r.gt.centre)) for r in matched]
+    yaw = np.degrees([yaw_error_mod_pi(r.pred.yaw, r.gt.yaw) for r in matched])
+    size = np.array([np.abs(r.pred.size - r.gt.size) for r in matched]).reshape(-1, 3)
+    return {
+        "n_gt": n_gt,
+        "n_matched": len(matched),
+        "missed_share": (n_gt - len(matched)) / n_gt if n_gt else None,
+        "mean_iou_bev": _mean(bev),
+        "mean_iou_3d": _mean(iou3d),
+        "recall_weighted_iou_bev": float(bev.sum() / n_gt) if n_gt else None,
+        "recall_weighted_iou_3d": float(iou3d.sum() / n_gt) if n_gt else None,
+        "centre_error_m": _mean(centre),
+        "yaw_error_deg": _mean(yaw),
+        "yaw_error_median_deg": _median(yaw),
+        "heading_accuracy": heading_accuracy(records),
+        "size_error_m": ({"w": float(size[:, 0].mean()), "h": float(size[:, 1].mean()),
+                          "l": float(size[:, 2].mean())} if len(matched) else None),
+        "size_bias": size_bias(records),
+    }
+
+
+def bin_labels(edges: Sequence[float], unit: str = "", scale: float = 1.0) -> list[str]:
+    """Labels ``"a-b"`` of the bins ``[edges[k], edges[k+1])`` and ``"last+"`` of the open last one."""
+    fmt = [f"{e * scale:g}" for e in edges]
+    return [f"{a}-{b}{unit}" for a, b in zip(fmt[:-1], fmt[1:])] + [f"{fmt[-1]}{unit}+"]
+
+
+def bin_of(value: float | None, edges: Sequence[float], labels: Sequence[str]) -> str | None:
+    """Label of the bin holding ``value`` (None below the first edge or when ``value`` is None)."""
+    if value is None or value < edges[0]:
+        return None
+    return labels[int(np.searchsorted(edges, value, side="right")) - 1]
+
+
+def breakdown(records: Sequence[GroundTruthRecord], key: Callable[[GroundTruthRecord], str | None],
+              order: Sequence[str] | None = None) -> dict[str, dict] | None:
+    """:func:`summarise` per value of ``key(record)`` (records with key None are left out);
+    None when no record has a key. Groups appear in ``order`` first, then sorted."""
+    groups: dict[str, list[GroundTruthRecord]] = {}
+    for r in records:
+        k = key(r)
+        if k is not None:
+            groups.setdefault(k, []).append(r)
+    if not groups:
+        return None
+    names = [n for n in (order or ()) if n in groups] + sorted(n for n in groups if n not in (order or ()))
+    return {n: summarise(groups[n]) for n in names}
+
+
+@dataclass(frozen=True)
+class BreakdownBins:
+    """Bin edges of the distance and occlusion breakdowns (the last bin is open-ended)."""
+
+    #: Horizontal distance of the car's centre from the camera, metres.
+    distance_m: tuple[float, ...] = (0.0, 20.0, 40.0, 60.0)
+    #: Occlusion ``1 - visible / amodal`` pixels (sidecar only), as a fraction.
+    occlusion: tuple[float, ...] = (0.0, 0.3, 0.6, 0.8)
+
+
 @dataclass
 class PairStatistics:
-    """Accumulates matched pairs and ground-truth counts per group (see the module docstring)."""
+    """Accumulates the :class:`GroundTruthRecord` of every evaluated frame."""
 
-    n_gt: dict[str, int] = field(default_factory=lambda: {g: 0 for g in GROUPS})
-    pairs: dict[str, list[MatchedPair]] = field(default_factory=lambda: {g: [] for g in GROUPS})
-
-    @staticmethod
-    def _groups(box: Box3D) -> tuple[str, str]:
-        return GROUP_ALL, GROUP_DYNAMIC if box.dynamic else GROUP_STATIC
+    records: list[GroundTruthRecord] = field(default_factory=list)
 
     def add_frame(self, gt: Sequence[Box3D], pred: Sequence[Box3D], gt_counted: Sequence[bool],
-                  min_iou: float = 0.0) -> None:
-        """Match one frame; ground truth with ``gt_counted`` False is matched but not reported."""
-        for box, counted in zip(gt, gt_counted):
-            if counted:
-                for g in self._groups(box):
-                    self.n_gt[g] += 1
-        for i, j, iou_bev, iou_3d in hungarian_pairs(gt, pred, min_iou):
-            if gt_counted[i]:
-                for g in self._groups(gt[i]):
-                    self.pairs[g].append(MatchedPair(gt[i], pred[j], iou_bev, iou_3d))
+                  min_iou: float = 0.0, attributes: Sequence[CarAttributes] | None = None,
+                  frame: int = 0) -> None:
+        """Match one frame (:func:`match_frame`) and keep its records."""
+        self.records += match_frame(frame, gt, pred, gt_counted, min_iou, attributes)
 
     def summary(self) -> dict[str, dict]:
-        """Per group: counts, mean / recall-weighted IoUs and mean errors (JSON-ready)."""
-        out = {}
-        for g in GROUPS:
-            pairs, n_gt = self.pairs[g], self.n_gt[g]
-            bev = np.array([p.iou_bev for p in pairs])
-            iou3d = np.array([p.iou_3d for p in pairs])
-            centre = np.array([np.linalg.norm(p.pred.centre - p.gt.centre) for p in pairs])
-            yaw = np.degrees([yaw_error_mod_pi(p.pred.yaw, p.gt.yaw) for p in pairs])
-            size = np.array([np.abs(p.pred.size - p.gt.size) for p in pairs]).reshape(-1, 3)
-            out[g] = {
-                "n_gt": n_gt,
-                "n_matched": len(pairs),
-                "mean_iou_bev": _mean(bev),
-                "mean_iou_3d": _mean(iou3d),
-                "recall_weighted_iou_bev": float(bev.sum() / n_gt) if n_gt else None,
-                "recall_weighted_iou_3d": float(iou3d.sum() / n_gt) if n_gt else None,
-                "centre_error_m": _mean(centre),
-                "yaw_error_deg": _mean(yaw),
-                "size_error_m": ({"w": float(size[:, 0].mean()), "h": float(size[:, 1].mean()),
-                                  "l": float(size[:, 2].mean())} if len(pairs) else None),
-            }
-        return out
+        """:func:`summarise` of all records and of the static / dynamic ground truth."""
+        dynamic = [r for r in self.records if r.gt.dynamic]
+        static = [r for r in self.records if not r.gt.dynamic]
+        return {GROUP_ALL: summarise(self.records), GROUP_STATIC: summarise(static),
+                GROUP_DYNAMIC: summarise(dynamic)}
 
+    def breakdowns(self, bins: BreakdownBins = BreakdownBins()) -> dict[str, dict | None]:
+        """:func:`summarise` by vehicle class, distance, occlusion and parking kind.
 
-def _mean(values: np.ndarray) -> float | None:
-    return float(np.mean(values)) if len(values) else None
+        A breakdown whose attribute no record has (e.g. no sidecar) is None.
+        """
+        distance_labels = bin_labels(bins.distance_m, " m")
+        occlusion_labels = bin_labels(bins.occlusion, " %", 100.0)
+        return {
+            "by_class": breakdown(self.records, lambda r: r.attributes.vehicle_class),
+            "by_distance": breakdown(self.records, lambda r: bin_of(r.distance_m, bins.distance_m,
+                                                                     distance_labels), distance_labels),
+            "by_occlusion": breakdown(self.records, lambda r: bin_of(r.attributes.occlusion, bins.occlusion,
+                                                                      occlusion_labels), occlusion_labels),
+            "by_parking": breakdown(self.records, lambda r: r.attributes.parking),
+        }

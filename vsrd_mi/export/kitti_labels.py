@@ -1,6 +1,6 @@
 """KITTI object label files: parsing, formatting, atomic writing, conversion to/from :class:`Box3D`.
 
-One object per line (REFERENCE §9)::
+One object per line (``docs/method.md`` §9)::
 
     type truncated occluded alpha x1 y1 x2 y2 h w l x y z ry [score]
 

@@ -3,7 +3,8 @@
 :func:`write_visuals` writes, under ``OUT/<sequence>/vis/<target %010d>/``:
 
 * ``boxes_target.png``: the 12 edges of every optimised box (near-plane clipped) projected onto
-  the target image, one colour per box, labelled ``instance: confidence``;
+  the target image through the camera's full pose (pitch and roll included), one colour per box,
+  labelled ``instance: confidence``;
 * ``boxes_sources.png``: the same over every source image (boxes moved to the source's time and
   camera), as a downscaled contact sheet;
 * ``masks.png``: per row (target, then a few sources) the real instance masks beside the soft
@@ -38,9 +39,9 @@ from vsrd_plugins.silhouette import instance_colours
 
 from ..batch.atomic import atomic_write_bytes
 from ..data.kitti360 import Sequence as KittiSequence
-from ..data.observations import Observations, box_in_frame
+from ..data.observations import Observations
 from ..geometry.boxes import BOX_EDGES, Box3D
-from ..geometry.camera import NEAR_PLANE, box_to_2d, project
+from ..geometry.camera import NEAR_PLANE, box_to_2d, project, transform_points
 from ..geometry.iou3d import bev_footprint
 from ..optimise.losses import to_float
 from ..optimise.optimiser import BoxOptimiser, OptimisationResult
@@ -155,12 +156,15 @@ def scaled_size(image_size: tuple[int, int], scale: float) -> tuple[int, int]:
 # ----------------------------------------------------------------------------------------------
 
 
-def box_edge_segments(box_cam: Box3D, K: np.ndarray, near: float = NEAR_PLANE) -> np.ndarray:
-    """Pixel segments ``(M, 2, 2)`` of the box's 12 edges clipped to ``z >= near`` (camera frame).
+def box_edge_segments(box: Box3D, K: np.ndarray, near: float = NEAR_PLANE,
+                      to_cam: np.ndarray | None = None) -> np.ndarray:
+    """Pixel segments ``(M, 2, 2)`` of the box's 12 edges clipped to ``z >= near`` in the camera.
 
-    Edges entirely behind the plane are dropped; an edge crossing it is cut at the plane.
+    ``to_cam`` (4x4) maps the box's frame to the camera (None: the box is in the camera frame);
+    the corners are moved exactly, so a box drawn into a pitched camera keeps its tilt. Edges
+    entirely behind the plane are dropped; an edge crossing it is cut at the plane.
     """
-    c = box_cam.corners()
+    c = box.corners() if to_cam is None else transform_points(to_cam, box.corners())
     a, b = c[BOX_EDGES[:, 0]], c[BOX_EDGES[:, 1]]
     keep = (a[:, 2] >= near) | (b[:, 2] >= near)
     a, b = a[keep], b[keep]
@@ -187,15 +191,16 @@ def draw_segments(img: np.ndarray, segments: np.ndarray, colour: RGB, thickness:
             cv2.line(img, p1, p2, colour, thickness, cv2.LINE_AA)
 
 
-def draw_projected_boxes(image: np.ndarray, boxes_cam: Sequence[Box3D], K: np.ndarray,
+def draw_projected_boxes(image: np.ndarray, boxes: Sequence[Box3D], K: np.ndarray,
                          colours: Sequence[RGB], captions: Sequence[str],
-                         cfg: VisualConfig = VisualConfig()) -> np.ndarray:
-    """A copy of ``image`` (RGB) with every camera-frame box drawn and captioned."""
+                         cfg: VisualConfig = VisualConfig(), to_cam: np.ndarray | None = None) -> np.ndarray:
+    """A copy of ``image`` (RGB) with every box drawn and captioned; ``to_cam`` (4x4) maps the
+    boxes' frame to the camera (None: the boxes are in the camera frame)."""
     img = np.ascontiguousarray(image, dtype=np.uint8).copy()
     h, w = img.shape[:2]
-    for box, colour, caption in zip(boxes_cam, colours, captions):
-        draw_segments(img, box_edge_segments(box, K), colour, cfg.edge_thickness)
-        b2 = box_to_2d(box, K, image_size=(w, h))
+    for box, colour, caption in zip(boxes, colours, captions):
+        draw_segments(img, box_edge_segments(box, K, to_cam=to_cam), colour, cfg.edge_thickness)
+        b2 = box_to_2d(box, K, world_to_cam=to_cam, image_size=(w, h))
         if b2 is not None and caption:
             x = int(np.clip(b2[0], 0, w - 1))
             y = int(np.clip(b2[1] - 4, 12, h - 1))
@@ -237,8 +242,9 @@ def write_projected_boxes(out_dir: Path, seq: "KittiSequence", obs: "Observation
         image = seq.image(int(obs.frames[f]))
         if scale != 1.0:
             image = cv2.resize(image, scaled_size(obs.image_size, scale), interpolation=cv2.INTER_AREA)
-        cam = [box_in_frame(b, obs, f) for b in boxes]
-        img = draw_projected_boxes(image, cam, scaled_intrinsics(obs.K[f], scale), colours, captions, cfg)
+        moved = [b.at_offset(float(obs.dt[f])) for b in boxes]  # exact projection through the pose
+        img = draw_projected_boxes(image, moved, scaled_intrinsics(obs.K[f], scale), colours, captions, cfg,
+                                   to_cam=np.linalg.inv(obs.cam_to_opt[f]))
         put_text(img, f"frame {int(obs.frames[f])} (dt {int(obs.dt[f]):+d})", (6, 18), cfg.font_scale)
         return img
 

@@ -1,4 +1,4 @@
-"""Exact bird's-eye-view (BEV) and 3D IoU of gravity-aligned boxes (REFERENCE §9).
+"""Exact bird's-eye-view (BEV) and 3D IoU of gravity-aligned boxes (docs/method.md §9).
 
 A :class:`~vsrd_mi.geometry.boxes.Box3D` is a rectangle in the ground (x-z) plane, rotated by its
 yaw, extruded along the vertical y axis. Therefore

@@ -1,4 +1,4 @@
-"""3D attribute initialisation from stereo depth (VSRD++ §III-D, REFERENCE §6).
+"""3D attribute initialisation from stereo depth (VSRD++ §III-D, docs/method.md §6).
 
 For every instance of the target frame: pseudo point clouds per frame (:mod:`.pointcloud`),
 velocity by translation-only ICP between frames (:mod:`.icp`, eq. 11-12), a dynamic flag,
@@ -242,7 +242,7 @@ def to_target_time(points: np.ndarray, offset: int, motion: np.ndarray) -> np.nd
     """Move a cloud seen at frame ``offset`` to the target time: ``points - motion * offset``.
 
     ``motion`` is the velocity for dynamic instances and zero for static ones; the box centre at
-    offset ``dt`` is ``l + v * dt`` (REFERENCE §1), so going back to ``dt = 0`` subtracts ``v * dt``.
+    offset ``dt`` is ``l + v * dt`` (docs/method.md §1), so going back to ``dt = 0`` subtracts ``v * dt``.
     """
     return points - np.asarray(motion, float) * offset
 

@@ -1,4 +1,4 @@
-"""Configuration of the 3D attribute initialisation (VSRD++ §III-D, REFERENCE §6).
+"""Configuration of the 3D attribute initialisation (VSRD++ §III-D, docs/method.md §6).
 
 Every threshold of the stage is a documented field here; the defaults are the paper's / the
 reference code's values unless a field's documentation says why another value is used.
@@ -59,7 +59,7 @@ class StereoConfig:
 
 @dataclass
 class PointCloudConfig:
-    """Depth -> pseudo point cloud of one instance in one frame (Algorithm 1, REFERENCE §6 1-4)."""
+    """Depth -> pseudo point cloud of one instance in one frame (Algorithm 1, docs/method.md §6 1-4)."""
 
     #: Erosion kernel side = ``int(sqrt(mask area) * erosion_factor)`` px (square kernel).
     erosion_factor: float = 0.25
@@ -85,7 +85,7 @@ class PointCloudConfig:
 
 @dataclass
 class VelocityConfig:
-    """Velocity by translation-only ICP (eq. 11-12, REFERENCE §6 step 5)."""
+    """Velocity by translation-only ICP (eq. 11-12, docs/method.md §6 step 5)."""
 
     #: Frames whose cloud has more than this many points take part in the velocity estimate.
     min_points: int = 100
@@ -117,7 +117,7 @@ class VelocityConfig:
     #: scene. ``benchmarks/dynamic_flags.json`` (unweighted outlier centre throughout): two
     #: neighbours 2 wrong (1 with the t test of ``significance``), four neighbours 0; the gap
     #: weights then lower the moving cars' speed error median from 0.41 to 0.35 m/s and the
-    #: parked cars' apparent speed p90 from 0.64 to 0.28 m/s. REFERENCE §6 (and the authors'
+    #: parked cars' apparent speed p90 from 0.64 to 0.28 m/s. docs/method.md §6 (and the authors'
     #: code) weighs by point count only: ``gap_weighted=False`` with ``pair_neighbours=2`` is
     #: that recipe (with this module's outlier rejection and significance test).
     gap_weighted: bool = True
@@ -238,7 +238,7 @@ class InitConfig:
     #: Directory of ``%010d.png`` (uint16, metres * 256) or ``%010d.npy`` (float metres) depth maps.
     depth_dir: str | None = None
     #: Instances need at least this many points in a frame to be located from that frame alone
-    #: (REFERENCE §6 step 6; the paper's text says 100, the code 120).
+    #: (docs/method.md §6 step 6; the paper's text says 100, the code 120).
     min_points_location: int = 120
     #: Instances whose clouds hold fewer points than this in every frame get no initialisation.
     min_points_any: int = 20

@@ -1,4 +1,4 @@
-"""Depth -> pseudo point cloud of one instance (VSRD++ Algorithm 1, REFERENCE §6 steps 1-4).
+"""Depth -> pseudo point cloud of one instance (VSRD++ Algorithm 1, docs/method.md §6 steps 1-4).
 
 1. erode the instance mask with a square kernel of ``int(sqrt(area) * 0.25)`` px;
 2. keep the pixels whose left-right photometric warp error is within the mask's 40th percentile;

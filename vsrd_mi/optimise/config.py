@@ -1,4 +1,4 @@
-"""Configuration of the VSRD++ box optimisation (paper Method §III-B..E, REFERENCE §3-4, §7).
+"""Configuration of the VSRD++ box optimisation (paper Method §III-B..E, docs/method.md §3-4, §7).
 
 Two presets: :func:`paper_config` reproduces the paper's schedule (3000 steps, 1000 box-only
 warm-up steps, 1000 rays, dense sampling); :func:`default_config` is the fast default (adaptive
@@ -155,7 +155,7 @@ class CarProfile:
 
 @dataclass(frozen=True)
 class LearningRates:
-    """Adam learning rates per parameter group (REFERENCE §4), decayed exponentially to
+    """Adam learning rates per parameter group (docs/method.md §4), decayed exponentially to
     ``decay`` times their start over the whole run."""
 
     box: float = 1e-2
@@ -167,7 +167,7 @@ class LearningRates:
 
 @dataclass(frozen=True)
 class Schedule:
-    """Sharpness and softmin-temperature annealing (REFERENCE §3): cosine in ``1/s`` from
+    """Sharpness and softmin-temperature annealing (docs/method.md §3): cosine in ``1/s`` from
     ``1/s_start`` to ``1/s_end`` and in ``tau`` from ``tau_start`` to ``tau_end`` over the run."""
 
     inv_sharpness_start: float = 1.0
@@ -202,10 +202,45 @@ class ConsensusConfig:
     gate: float = 2.0
     #: Fuse a car only when at least this many targets' boxes are inliers (at least 2).
     min_targets: int = 2
+    #: A target's box of a car counts ``1 / max(range, near_range)^2`` (its range in metres from
+    #: that target's camera): closer views pin a car down better (stereo depth error and the pixel
+    #: footprint both scale with range squared); within ``near_range`` all count alike.
+    near_range: float = 10.0
 
     def __post_init__(self) -> None:
-        if self.gate <= 0 or self.min_targets < 2:
-            raise ValueError(f"ConsensusConfig: gate must be > 0 and min_targets >= 2, got {self.gate}, {self.min_targets}")
+        if self.gate <= 0 or self.min_targets < 2 or self.near_range <= 0:
+            raise ValueError(f"ConsensusConfig: gate and near_range must be > 0 and min_targets >= 2, got "
+                             f"{self.gate}, {self.near_range}, {self.min_targets}")
+
+
+#: Accepted values of :attr:`HeadingConfig.prior`.
+HEADING_PRIORS = ("none", "right-hand", "left-hand")
+
+
+@dataclass(frozen=True)
+class HeadingConfig:
+    """Front / back decision of parked cars (not in the paper; :mod:`vsrd_mi.optimise.heading`)."""
+
+    #: Decide headings at all (off: boxes keep the optimiser's yaw).
+    enabled: bool = True
+    #: Smallest mean-IoU difference between the two ends that turns a box. Silhouette IoUs of
+    #: the two ends of a well-fitted box differ by a few hundredths when the views show the car's
+    #: side; 0.01 is below that and above the rasteriser's own noise (a pixel's share of a small
+    #: car's silhouette).
+    min_evidence: float = 0.01
+    #: Frames whose mask has fewer pixels than this take no part (too small to show a shape).
+    min_mask_pixels: int = 200
+    #: Which way parked cars are assumed to face when the silhouettes cannot tell: ``"none"`` keeps
+    #: the optimiser's yaw; ``"right-hand"`` (traffic drives on the right, the ego along +z of the
+    #: optimisation frame) faces a car on the right (x > 0) along +z and one on the left along -z;
+    #: ``"left-hand"`` the mirror image.
+    prior: str = "none"
+
+    def __post_init__(self) -> None:
+        if self.prior not in HEADING_PRIORS:
+            raise ValueError(f"heading.prior must be one of {HEADING_PRIORS}, got {self.prior!r}")
+        if self.min_evidence < 0 or self.min_mask_pixels < 0:
+            raise ValueError("heading.min_evidence and heading.min_mask_pixels must be >= 0")
 
 
 @dataclass(frozen=True)
@@ -235,6 +270,10 @@ class AutolabelConfig:
     #: ``benchmarks/residual_gradients.py`` times both).
     residual_gradients: str = "fused"
     velocity: bool = True
+    #: Occlusion-aware projection loss (not in the paper): a side of a mask box that an occluder
+    #: or the image edge may cut short (:func:`vsrd_mi.data.masks.open_sides`) only bounds the
+    #: projected box from inside. Off: every mask box side is the car's (the paper).
+    occlusion_aware: bool = True
     #: Use the stereo attribute initialisation (else the documented default box, see
     #: :func:`vsrd_mi.scene.default_initial_boxes`).
     init: bool = True
@@ -250,6 +289,7 @@ class AutolabelConfig:
     schedule: Schedule = field(default_factory=Schedule)
     early_stop: EarlyStop = field(default_factory=EarlyStop)
     consensus: ConsensusConfig = field(default_factory=ConsensusConfig)
+    heading: HeadingConfig = field(default_factory=HeadingConfig)
 
     def replace(self, **kw) -> "AutolabelConfig":
         return dataclasses.replace(self, **kw)
@@ -300,6 +340,7 @@ class AutolabelConfig:
         d["schedule"] = Schedule(**d.get("schedule", {}))
         d["early_stop"] = EarlyStop(**d.get("early_stop", {}))
         d["consensus"] = ConsensusConfig(**d.get("consensus", {}))
+        d["heading"] = HeadingConfig(**d.get("heading", {}))
         return AutolabelConfig(**d)
 
 

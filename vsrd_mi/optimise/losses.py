@@ -1,4 +1,4 @@
-"""Loss terms of the box optimisation (paper eq. 13-16, REFERENCE §3-4), in Dr.Jit.
+"""Loss terms of the box optimisation (paper eq. 13-16, docs/method.md §3-4), in Dr.Jit.
 
 Every function is differentiable and works on flat Dr.Jit arrays; the matching, ray sampling
 and bookkeeping around them live in :mod:`vsrd_mi.optimise.optimiser`.
@@ -62,18 +62,25 @@ class ProjectionLanes:
     """The (frame, box) pairs supervised by the projection loss, as flat lane arrays.
 
     Built from NumPy: ``box`` (L,) box index, ``dt`` (L,) frame offsets, ``world_to_cam`` (L, 4, 4)
-    optimisation frame -> camera, ``target`` (L, 4) mask boxes. All lanes share intrinsics ``K``
-    and image ``bounds``.
+    optimisation frame -> camera, ``target`` (L, 4) mask boxes, and optionally ``open_sides``
+    (L, 4) bool: the sides of a mask box that an occluder or the image edge may cut short
+    (:func:`vsrd_mi.data.masks.open_sides`). All lanes share intrinsics ``K`` and image ``bounds``.
     """
 
     def __init__(self, box: np.ndarray, dt: np.ndarray, world_to_cam: np.ndarray,
-                 target: np.ndarray, K: np.ndarray, bounds: np.ndarray):
+                 target: np.ndarray, K: np.ndarray, bounds: np.ndarray,
+                 open_sides: np.ndarray | None = None):
         self.count = len(box)
         self.box = to_uint(box)
         self.dt = to_float(dt)
         self.rot = [[to_float(world_to_cam[:, i, j]) for j in range(3)] for i in range(3)]
         self.trans = [to_float(world_to_cam[:, i, 3]) for i in range(3)]
         self.target = [to_float(target[:, i]) for i in range(4)]
+        opened = np.zeros((self.count, 4), bool) if open_sides is None else np.asarray(open_sides, bool)
+        #: Per side, 1 where the side is open (a float so that no mask type enters the kernels).
+        self.open = [to_float(opened[:, i]) for i in range(4)]
+        #: 1 on lanes whose mask box is whole (no open side): the DIoU term applies to those.
+        self.closed = to_float(~opened.any(axis=1))
         self.K = np.asarray(K, dtype=np.float64)
         self.bounds = tuple(float(b) for b in bounds)
 
@@ -193,15 +200,19 @@ def projection_loss(dec: DecodedBoxes, lanes: ProjectionLanes, beta: float,
     else:
         h = mi.Float(0.0)
         for i in range(4):
-            h = h + huber(pred[i] - tgt[i], beta)
+            e = pred[i] - tgt[i]
+            # the projection falls short of an open side when it lies inside it: e > 0 at the
+            # min sides (x1, y1), e < 0 at the max sides (x2, y2)
+            inside = dr.maximum(e, 0.0) if i < 2 else dr.minimum(e, 0.0)
+            h = h + huber(dr.select(lanes.open[i] > 0.5, inside, e), beta)
     total = w_huber * h
     if w_diou > 0:
-        total = total + w_diou * (1.0 - boxes2d.diou(pred, tgt, xp=dr))
+        total = total + w_diou * lanes.closed * (1.0 - boxes2d.diou(pred, tgt, xp=dr))
     return mean(total)
 
 
 def silhouette_loss(labels: list, targets: list, eps: float) -> mi.Float:
-    """Mean per-instance BCE of rendered labels against target masks (REFERENCE §3)."""
+    """Mean per-instance BCE of rendered labels against target masks (docs/method.md §3)."""
     total = mi.Float(0.0)
     for p, y in zip(labels, targets):
         total = total + mean(binary_cross_entropy(p, y, eps))

@@ -6,7 +6,7 @@ integrator with one box per target instance), reads its differentiable parameter
 
 1. every step: sharpness ``s`` and temperature ``tau`` from the cosine schedule (opaque values,
    no recompilation), learning rates decayed exponentially;
-2. Hungarian matching of boxes to target-frame mask boxes on ``-DIoU`` (REFERENCE §4);
+2. Hungarian matching of boxes to target-frame mask boxes on ``-DIoU`` (docs/method.md §4);
 3. rays drawn per frame from the soft masks (:class:`RaySampler`), soft labels rendered by the
    integrator's ray-batch entry point, BCE against the masks;
 4. projection loss on every (frame, box) pair where the matched instance is visible; eikonal loss
@@ -183,7 +183,7 @@ class BoxOptimiser:
     # -- supervision ---------------------------------------------------------------------------
     def _projection_lanes(self) -> losses.ProjectionLanes:
         obs = self.obs
-        box, dt, w2c, tgt = [], [], [], []
+        box, dt, w2c, tgt, sides = [], [], [], [], []
         for f in self.frames:
             for n in range(self.n):
                 inst = self.perm[n]
@@ -192,8 +192,10 @@ class BoxOptimiser:
                     dt.append(obs.dt[f])
                     w2c.append(self.world_to_cam[f])
                     tgt.append(obs.boxes2d[f, inst])
+                    sides.append(obs.open_sides[f, inst] if self.cfg.occlusion_aware else np.zeros(4, bool))
         return losses.ProjectionLanes(np.array(box), np.array(dt), np.array(w2c).reshape(-1, 4, 4),
-                                      np.array(tgt).reshape(-1, 4), obs.K[0], self.bounds)
+                                      np.array(tgt).reshape(-1, 4), obs.K[0], self.bounds,
+                                      np.array(sides, bool).reshape(-1, 4))
 
     def _match(self, dec) -> np.ndarray:
         """Hungarian matching of boxes to target-frame instances on -DIoU."""

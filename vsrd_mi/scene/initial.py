@@ -1,4 +1,4 @@
-"""Default initial boxes, used when no stereo initialisation (REFERENCE §6) is available.
+"""Default initial boxes, used when no stereo initialisation (docs/method.md §6) is available.
 
 Each target instance starts as a typical car standing where a car of typical height would appear
 as tall as the instance's 2D box in the target image, facing along the road (the optimisation

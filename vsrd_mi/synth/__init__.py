@@ -1,9 +1,13 @@
 """Synthetic KITTI-360 sequences (the generator, apart from the readers in :mod:`vsrd_mi.data`).
 
-:func:`generate_sequence` lays out a street (:mod:`.world`), builds the cars (:mod:`.cars`),
-ray-casts both rectified cameras with Mitsuba (:mod:`.render`, textures in :mod:`.texture`) and
-writes the KITTI-360 release layout; every setting is a field of :class:`SynthConfig`
-(:mod:`.config`); ``vsrd-mi synth`` is :mod:`.cli`.
+:func:`generate_sequence` lays out a street (:mod:`.layout`: the world of :mod:`.world`, parked
+rows of :mod:`.parking`, props of :mod:`.props`), builds the cars (:mod:`.cars`: mesh files and
+the basic procedural cars; :mod:`.vehicles`: eight procedural vehicle classes), ray-casts both
+rectified cameras with Mitsuba (:mod:`.render`, textures in :mod:`.texture`), writes the
+KITTI-360 release layout and the per-car attributes file (:mod:`.attributes`). Every setting is
+a field of :class:`SynthConfig` (:mod:`.config`); :mod:`.suites` holds the development and
+validation sets; ``vsrd-mi synth`` is :mod:`.cli`, ``vsrd-mi synth-suite`` :mod:`.suite_cli`.
+Design notes: ``docs/synthetic.md``.
 """
 
 from .config import SynthConfig

@@ -1,7 +1,8 @@
 """Car shapes for the synthetic KITTI-360 generator: CC0 meshes and procedural cars.
 
 Every car model is a triangle mesh in the *car frame* of KITTI-360 boxes: x forward (heading),
-y left, z up, metres, with a per-face material (:data:`BODY`, :data:`GLASS`, :data:`TYRE`).
+y left, z up, metres, with a per-face material (:data:`BODY`, :data:`GLASS`, :data:`TYRE`,
+:data:`RIM`) and optionally a :class:`LampLayout` (where the texture paints lamps and plates).
 The ground-truth box of a placed car is the tight axis-aligned box of its vertices in this frame
 (:attr:`CarModel.box_min` / :attr:`CarModel.box_max`), so a model need not be centred.
 
@@ -22,7 +23,7 @@ import trimesh
 from ..errors import DataError
 
 #: Per-face materials of a car model.
-BODY, GLASS, TYRE = 0, 1, 2
+BODY, GLASS, TYRE, RIM = 0, 1, 2, 3
 
 #: Folder of the bundled CC0 car meshes.
 ASSET_DIR = Path(__file__).resolve().parent / "assets"
@@ -32,13 +33,46 @@ MESH_TO_CAR = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
 
 
 @dataclass(frozen=True)
+class LampLayout:
+    """Where the texture paints lamps and number plates on a car (car frame, metres).
+
+    A lamp or plate is painted on body faces that face forwards (front zones) or backwards (rear
+    zones) within a band of heights ``z`` and of lateral distances ``|y|`` from the centre plane.
+    """
+
+    #: Headlamps: height band and ``|y|`` band; beyond ``indicator_y`` the band is amber.
+    head_z: tuple[float, float]
+    head_y: tuple[float, float]
+    indicator_y: float
+    #: Rear lamps (red): height band and ``|y|`` band.
+    tail_z: tuple[float, float]
+    tail_y: tuple[float, float]
+    #: Number plates: height bands at the front and rear, half their width.
+    plate_front_z: tuple[float, float]
+    plate_rear_z: tuple[float, float]
+    plate_half_width: float
+
+    def scaled(self, factor: float) -> "LampLayout":
+        """The layout of the car scaled uniformly about its bottom centre by ``factor``."""
+        def band(b: tuple[float, float]) -> tuple[float, float]:
+            return (b[0] * factor, b[1] * factor)
+        return LampLayout(band(self.head_z), band(self.head_y), self.indicator_y * factor,
+                          band(self.tail_z), band(self.tail_y), band(self.plate_front_z),
+                          band(self.plate_rear_z), self.plate_half_width * factor)
+
+
+@dataclass(frozen=True)
 class CarModel:
     """A car mesh in the car frame (x forward, y left, z up), lowest vertex at z = 0."""
 
     name: str
     vertices: np.ndarray  # (V, 3) float64
     faces: np.ndarray  # (F, 3) int64
-    materials: np.ndarray  # (F,) int8, one of BODY / GLASS / TYRE
+    materials: np.ndarray  # (F,) int8, one of BODY / GLASS / TYRE / RIM
+    #: Vehicle class written to the attributes file (procedural class name or mesh file stem).
+    vehicle_class: str = ""
+    #: Lamps and plates painted by the texture (None: none).
+    lamps: LampLayout | None = None
 
     @property
     def box_min(self) -> np.ndarray:
@@ -169,7 +203,8 @@ def procedural_car(rng: np.random.Generator, config: ProceduralCarConfig = Proce
         offset += len(v)
     verts = np.concatenate(verts)
     verts[:, 2] -= verts[:, 2].min()  # faceted wheels: put the lowest vertex on the ground
-    return CarModel(f"procedural-{name}", verts, np.concatenate(faces), np.concatenate(mats))
+    return CarModel(f"procedural-{name}", verts, np.concatenate(faces), np.concatenate(mats),
+                    f"procedural-{name}")
 
 
 #: Upper part of a mesh-file car (fraction of its height) whose steep faces are painted as glass.
@@ -220,7 +255,7 @@ def _load_car_mesh(name: str, mtime_ns: int, size: int) -> CarModel:
     mats = np.where(high & (nz < GLASS_MAX_NORMAL_Z), GLASS, BODY).astype(np.int8)
     for array in (verts, faces, mats):  # shared by the cache
         array.setflags(write=False)
-    return CarModel(path.stem, verts, faces, mats)
+    return CarModel(path.stem, verts, faces, mats, path.stem)
 
 
 def bundled_mesh_paths() -> list[Path]:
@@ -230,4 +265,32 @@ def bundled_mesh_paths() -> list[Path]:
 
 def scaled(model: CarModel, factor: float) -> CarModel:
     """The model uniformly scaled about its bottom centre (z = 0 stays on the ground)."""
-    return CarModel(model.name, model.vertices * factor, model.faces, model.materials)
+    lamps = None if model.lamps is None else model.lamps.scaled(factor)
+    return CarModel(model.name, model.vertices * factor, model.faces, model.materials,
+                    model.vehicle_class, lamps)
+
+
+#: Lamp and plate bands of a mesh-file car as fractions of its tight box: heights as fractions of
+#: the height, ``|y|`` as fractions of the half width. A mesh file has no lamp geometry of its own;
+#: the forward-facing surface of the bundled CC0 meshes lies at 10-60 % of their height and the
+#: backward-facing one at 10-70 %, so the bands sit in the upper part of each.
+MESH_LAMP_FRACTIONS = {"head_z": (0.40, 0.55), "head_y": (0.55, 0.92), "indicator_y": 0.85,
+                       "tail_z": (0.50, 0.66), "tail_y": (0.60, 0.95),
+                       "plate_front_z": (0.18, 0.27), "plate_rear_z": (0.32, 0.41)}
+#: Half the width of a European number plate (520 mm x 110 mm), metres.
+PLATE_HALF_WIDTH = 0.26
+
+
+def with_mesh_lamps(model: CarModel) -> CarModel:
+    """The model with lamps and plates at :data:`MESH_LAMP_FRACTIONS` of its tight box."""
+    _, width, height = model.size
+    f = MESH_LAMP_FRACTIONS
+    def z(band: tuple[float, float]) -> tuple[float, float]:
+        return (band[0] * height, band[1] * height)
+    def y(band: tuple[float, float]) -> tuple[float, float]:
+        return (band[0] * 0.5 * width, band[1] * 0.5 * width)
+    lamps = LampLayout(z(f["head_z"]), y(f["head_y"]), f["indicator_y"] * 0.5 * width,
+                       z(f["tail_z"]), y(f["tail_y"]), z(f["plate_front_z"]),
+                       z(f["plate_rear_z"]), PLATE_HALF_WIDTH)
+    return CarModel(model.name, model.vertices, model.faces, model.materials,
+                    model.vehicle_class, lamps)

@@ -8,6 +8,7 @@ from dataclasses import replace
 
 from ..errors import DataError
 from .generate import SynthConfig, generate_sequence
+from .suites import LONG, SCENARIOS
 from .world import PlacementError
 
 
@@ -19,9 +20,15 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("out", help="dataset root to write (created if missing)")
     p.add_argument("--seq", type=int, default=0, help="sequence number (folder "
                    "2013_05_28_drive_%%04d_sync; default 0)")
-    p.add_argument("--frames", type=int, default=60, help="number of frames (default 60)")
-    p.add_argument("--static", type=int, default=4, help="parked cars (default 4)")
-    p.add_argument("--dynamic", type=int, default=2, help="moving cars (default 2)")
+    p.add_argument("--frames", type=int, default=None, help="number of frames (default 60, or "
+                   "the preset's)")
+    p.add_argument("--static", type=int, default=None, help="parked cars (default 4, or the "
+                   "preset's; with a preset the most parked cars kept)")
+    p.add_argument("--dynamic", type=int, default=None, help="moving cars (default 2, or the "
+                   "preset's)")
+    p.add_argument("--preset", choices=[s.name for s in SCENARIOS + (LONG,)], default=None,
+                   help="use a suite preset's world (vehicle classes, parking rows, props, camera "
+                        "pitch and roll; see docs/synthetic.md); default: the basic street")
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument("--first-frame", type=int, default=0, help="number of the first frame")
     p.add_argument("--mesh", action="append", default=None, metavar="PLY",
@@ -33,9 +40,18 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
+#: Frames, parked and moving cars of the basic street when no preset is given.
+BASIC_COUNTS = (60, 4, 2)
+
+
 def run(args: argparse.Namespace) -> int:
     meshes = [] if args.procedural_only else args.mesh
-    config = replace(SynthConfig(), first_frame=args.first_frame)
+    preset = {s.name: s for s in SCENARIOS + (LONG,)}.get(args.preset)
+    counts = BASIC_COUNTS if preset is None else (preset.frames, preset.n_static, preset.n_dynamic)
+    frames, n_static, n_dynamic = (given if given is not None else default for given, default in
+                                   zip((args.frames, args.static, args.dynamic), counts))
+    config = replace(SynthConfig() if preset is None else preset.config,
+                     first_frame=args.first_frame)
 
     def progress(done: int, total: int) -> None:
         if not args.quiet:
@@ -43,8 +59,8 @@ def run(args: argparse.Namespace) -> int:
                   file=sys.stderr, flush=True)
 
     try:
-        summary = generate_sequence(args.out, seq=args.seq, frames=args.frames,
-                                    n_static=args.static, n_dynamic=args.dynamic, seed=args.seed,
+        summary = generate_sequence(args.out, seq=args.seq, frames=frames,
+                                    n_static=n_static, n_dynamic=n_dynamic, seed=args.seed,
                                     meshes=meshes, config=config, progress=progress)
     except (DataError, PlacementError, ValueError) as exc:
         print(f"vsrd-mi synth: error: {exc}", file=sys.stderr)

@@ -9,6 +9,9 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from .cars import ProceduralCarConfig
+from .vehicles import VehicleConfig
+
+Range = tuple[float, float]
 
 #: KITTI-360 ``R_rect_00`` (row-major 3x3), as in ``calibration/perspective.txt`` of the release.
 KITTI360_R_RECT_00 = (9.999740e-01, -7.141000e-03, -8.900000e-05,
@@ -42,6 +45,15 @@ class RigConfig:
     camera_height: float = 1.55
     #: Frames per second (velocities per frame = speed / frame_rate).
     frame_rate: float = 10.0
+    #: Per-sequence pitch and roll of the rectified left camera relative to the road, degrees
+    #: (:func:`~vsrd_mi.synth.world.camera_pitch_roll`: pitch = optical axis below the horizon,
+    #: roll = image-right axis above it), each drawn uniformly from its range; the vehicle's
+    #: attitude is set so that its camera, mounted as in ``cam0_to_pose``, has them (the ego
+    #: noise of :class:`EgoConfig` comes on top). None: the vehicle stands level, which gives
+    #: this calibration's own pitch of about 5.7 deg and roll of about -0.1 deg. KITTI-360's
+    #: sequence 0000 reads pitch 5.8-6.1 deg, roll -0.7 to -1.0 deg.
+    camera_pitch_deg: Range | None = None
+    camera_roll_deg: Range | None = None
 
 
 @dataclass(frozen=True)
@@ -136,6 +148,139 @@ class TrafficConfig:
     mesh_scale_jitter: float = 0.04
     #: Attempts to place one car before giving up.
     max_tries: int = 300
+    #: How parked cars are placed: "scatter" (at random spots of both parallel parking strips,
+    #: the fields above) or "rows" (rows along the kerbs in parallel, angled or perpendicular
+    #: bays: :class:`ParkingConfig`).
+    parking: str = "scatter"
+    #: Which vehicles to build, as (entry, weight) pairs drawn in turn from a shuffled deck that
+    #: holds each entry ``weight`` times (so every entry comes up once per deck): a procedural
+    #: class of :class:`~vsrd_mi.synth.vehicles.VehicleConfig`, a mesh file's stem, or "meshes"
+    #: for every mesh file. Mesh cars drawn this way carry lamps and plates. Empty: the
+    #: ``procedural_fraction`` draw between the basic procedural cars and the mesh files.
+    vehicle_mix: tuple[tuple[str, int], ...] = ()
+
+
+#: Parking layouts of :class:`ParkingConfig`.
+PARKING_LAYOUTS = ("parallel", "angled", "perpendicular")
+
+
+@dataclass(frozen=True)
+class ParkingConfig:
+    """Parked cars in rows along both kerbs (``TrafficConfig.parking == "rows"``), metres.
+
+    Each side of the street is cut into segments, each with one layout: parallel (along the
+    kerb, facing either way), angled bays (the length axis ``angle_deg`` off the road, leaning
+    forwards or backwards along it, nose or tail to the kerb) or perpendicular bays. The parking
+    strip of a side is as deep as its deepest segment needs.
+    """
+
+    #: Layout probabilities per segment.
+    layouts: tuple[tuple[str, float], ...] = (("parallel", 0.5), ("angled", 0.3),
+                                              ("perpendicular", 0.2))
+    #: Length of a segment along the road (range).
+    segment_length: Range = (25.0, 70.0)
+    #: Where rows may stand along the road, relative to the ego's first and last positions.
+    extent: Range = (0.0, 60.0)
+    #: Depth of a parallel strip; a bay is ``bay_length`` deep and ``bay_width`` wide, so an
+    #: angled strip is ``bay_length * sin(a) + bay_width * cos(a)`` deep.
+    parallel_depth: float = 2.3
+    bay_length: float = 5.0
+    bay_width: float = 2.5
+    #: Angle of angled bays to the road, degrees (one per segment, leaning either way).
+    angle_deg: Range = (15.0, 60.0)
+    #: Standard deviation of each car's yaw about its bay's direction, degrees.
+    yaw_jitter_deg: float = 2.5
+    #: Probability that a parallel-parked car faces against its side's traffic direction.
+    parallel_reverse_prob: float = 0.4
+    #: Probability that a car in an angled or perpendicular bay stands tail to the kerb.
+    bay_reverse_prob: float = 0.35
+    #: Free distance between neighbouring cars of a row (range; footprint to footprint).
+    gap: Range = (0.5, 1.6)
+    #: Probability that a slot stays empty, and the length of the hole.
+    hole_prob: float = 0.15
+    hole_length: Range = (2.0, 8.0)
+    #: Distance of a car's kerb-side end from the kerb (range).
+    kerb_gap: Range = (0.1, 0.4)
+    #: A parked car may reach this far into the driving lane (longer cars are not put in bays).
+    lane_intrusion: float = 0.6
+    #: Least free distance between any two car footprints (below the smallest ``gap``: a row's
+    #: spacing is set by ``gap``, this guards the yaw jitter and the other row).
+    min_clearance: float = 0.3
+    #: Step by which a car is moved along the row when it is too close to its neighbour.
+    retry_step: float = 0.25
+    #: Moves per car, and vehicles drawn per slot, before the slot is given up.
+    max_moves: int = 40
+    max_models: int = 12
+
+
+#: Prop kinds of :class:`PropConfig`.
+PROP_KINDS = ("pole", "sign", "tree", "pedestrian", "bin")
+
+
+@dataclass(frozen=True)
+class PropConfig:
+    """Things that are not cars, on the sidewalks and between parked cars (metres, RGB).
+
+    Each kind has its own semantic id in the instance maps (pole 17, traffic sign 20,
+    vegetation 21, person 24, trash bin 39), never a car's.
+    """
+
+    #: Expected number of each kind per 100 m of street and side (Poisson); none by default.
+    density: tuple[tuple[str, float], ...] = ()
+    #: Where props may stand along the road, relative to the ego's first and last positions.
+    extent: Range = (0.0, 60.0)
+    #: Distance behind the kerb of props on the sidewalk (range).
+    sidewalk_offset: Range = (0.3, 1.2)
+    #: Share of pedestrians and bins standing in the parking strip (between parked cars), and
+    #: their least distance from the driving lane.
+    in_row_share: float = 0.5
+    lane_margin: float = 0.4
+    #: Least free distance between a prop and a car footprint or another prop.
+    clearance: float = 0.15
+    #: Attempts to place one prop.
+    max_tries: int = 20
+    pole_radius: Range = (0.06, 0.11)
+    pole_height: Range = (4.0, 8.0)
+    sign_post_radius: Range = (0.03, 0.045)
+    sign_height: Range = (2.0, 2.7)
+    sign_size: Range = (0.55, 0.8)
+    trunk_radius: Range = (0.10, 0.22)
+    trunk_height: Range = (2.4, 3.4)
+    crown_radius: Range = (1.2, 2.6)
+    person_height: Range = (1.50, 1.95)
+    person_width: Range = (0.40, 0.52)
+    person_depth: Range = (0.22, 0.30)
+    bin_size: tuple[Range, Range, Range] = ((0.55, 0.75), (0.55, 0.75), (0.90, 1.10))
+    #: Facets around a pole or trunk.
+    sections: int = 10
+    pole_palette: tuple[tuple[int, int, int], ...] = ((110, 112, 115), (62, 64, 66), (150, 150, 145))
+    sign_palette: tuple[tuple[int, int, int], ...] = ((30, 80, 170), (200, 30, 30),
+                                                      (230, 230, 230), (240, 200, 30))
+    bark_rgb: tuple[int, int, int] = (85, 65, 45)
+    foliage_palette: tuple[tuple[int, int, int], ...] = ((60, 95, 40), (45, 80, 35), (85, 115, 50))
+    clothes_palette: tuple[tuple[int, int, int], ...] = (
+        (40, 40, 45), (30, 45, 90), (120, 30, 35), (200, 200, 195), (90, 90, 95), (160, 120, 60),
+        (50, 90, 60), (180, 90, 40))
+    skin_palette: tuple[tuple[int, int, int], ...] = ((225, 190, 160), (190, 140, 105),
+                                                      (120, 85, 60))
+    bin_palette: tuple[tuple[int, int, int], ...] = ((40, 90, 50), (60, 60, 65), (30, 60, 120),
+                                                     (150, 150, 150))
+
+
+@dataclass(frozen=True)
+class VisibilityConfig:
+    """How the attributes file measures each car's occlusion and truncation (left camera)."""
+
+    #: The car is ray cast alone through every pixel of its projected box inside the image, and
+    #: up to this many image sizes beyond each border at a coarser stride (truncation).
+    margin: float = 1.0
+    #: Pixel stride of those rays outside the image (each hit counts stride^2 pixels).
+    margin_stride: int = 4
+    #: Largest number of rays per car inside the image: a larger silhouette rectangle is sampled
+    #: every k-th pixel in each direction (k as small as keeps the count below this).
+    max_rays_per_car: int = 20000
+    #: Decimals of the occlusion and truncation written to the file.
+    decimals: int = 4
 
 
 @dataclass(frozen=True)
@@ -187,6 +332,15 @@ class TextureConfig:
     tyre_rgb: tuple[int, int, int] = (38, 38, 40)
     #: Relative brightness modulation of car glass and tyres (their cells are the paint cells).
     detail_modulation: float = 0.8
+    #: Wheel hub discs, headlamps (white), indicators (amber), rear lamps (red), number plates.
+    rim_rgb: tuple[int, int, int] = (165, 168, 172)
+    headlamp_rgb: tuple[int, int, int] = (235, 236, 230)
+    indicator_rgb: tuple[int, int, int] = (235, 150, 35)
+    taillamp_rgb: tuple[int, int, int] = (175, 22, 28)
+    plate_rgb: tuple[int, int, int] = (228, 228, 218)
+    #: Lamps and plates are painted on body faces whose car-frame normal has an x component
+    #: beyond this (facing forwards) or below its negative (facing backwards).
+    lamp_facing: float = 0.35
     #: Sun direction (world, z up; normalised at use) and the ambient / diffuse light shares.
     sun: tuple[float, float, float] = (0.35, 0.25, 0.9)
     ambient: float = 0.55
@@ -196,6 +350,9 @@ class TextureConfig:
     sky_zenith: tuple[int, int, int] = (110, 150, 210)
     #: Elevation sine at which the sky reaches its zenith colour is ``1 / sky_gradient``.
     sky_gradient: float = 2.5
+    #: Props: 3D cell size (metres) and brightness factor range of their colour.
+    prop_cell: float = 0.12
+    prop_modulation: tuple[float, float] = (0.75, 1.2)
 
 
 @dataclass(frozen=True)
@@ -208,6 +365,10 @@ class SynthConfig:
     traffic: TrafficConfig = field(default_factory=TrafficConfig)
     texture: TextureConfig = field(default_factory=TextureConfig)
     procedural: ProceduralCarConfig = field(default_factory=ProceduralCarConfig)
+    vehicles: VehicleConfig = field(default_factory=VehicleConfig)
+    parking: ParkingConfig = field(default_factory=ParkingConfig)
+    props: PropConfig = field(default_factory=PropConfig)
+    visibility: VisibilityConfig = field(default_factory=VisibilityConfig)
     #: Index of the first frame (KITTI-360 sequences rarely start at 0).
     first_frame: int = 0
     #: PNG compression level (0-9) of the written images.

@@ -2,13 +2,14 @@
 
 :func:`generate_sequence` lays out a street (:mod:`~vsrd_mi.synth.world`), ray-casts both
 rectified cameras of every frame with Mitsuba (:mod:`~vsrd_mi.synth.render`) and writes the
-KITTI-360 release layout (REFERENCE section 8)::
+KITTI-360 release layout::
 
     calibration/perspective.txt, calibration/calib_cam_to_pose.txt
     data_poses/<seq>/cam0_to_world.txt, data_poses/<seq>/poses.txt
     data_2d_raw/<seq>/image_0{0,1}/data_rect/%010d.png
     data_2d_semantics/train/<seq>/image_00/instance/%010d.png
     data_3d_bboxes/train/<seq>.xml
+    data_3d_bboxes/train/<seq>.attributes.json   (vsrd-mi's own: :mod:`.attributes`)
 
 with ``<seq> = 2013_05_28_drive_%04d_sync``. The returned :class:`SynthSummary` holds the ground
 truth boxes in every frame's rectified camera frame, as a loader of these files should find them.
@@ -28,9 +29,11 @@ from ..data.kitti360 import CAR_KITTI_ID, STATIC_TIMESTAMP, frame_file, image_di
 from ..data.kitti360_write import (world_box, write_boxes_xml, write_calibration,
                                    write_cam0_to_world, write_imu_poses)
 from ..geometry.boxes import Box3D
+from .attributes import AmodalCaster, write_attributes
 from .config import SynthConfig
 from .render import RayCaster, View, render_view
-from .world import SynthWorld, build_world
+from .layout import build_world
+from .world import SynthWorld
 
 
 @dataclass
@@ -80,7 +83,7 @@ def write_png(path: Path, image: np.ndarray, compression: int) -> None:
 def render_frame(world: SynthWorld, i: int) -> tuple[View, View]:
     """Left and right views of frame index ``i`` (the right view's instance map is unused)."""
     mesh = world.frame_mesh(i)
-    caster = RayCaster(mesh)
+    caster = RayCaster(mesh.vertices, mesh.faces)
     return render_view(world, mesh, caster, i, 0), render_view(world, mesh, caster, i, 1)
 
 
@@ -98,14 +101,18 @@ def generate_sequence(out_root: str | Path, seq: int = 0, frames: int = 60, n_st
     world = build_world(seq, frames, n_static, n_dynamic, seed, meshes, config)
     write_annotations(root, world)
     level = config.png_compression
+    amodal = AmodalCaster(world)
+    visibility = {}
     for i, frame in enumerate(world.frames):
         left, right = render_frame(world, i)
         for camera, view in ((0, left), (1, right)):
             write_png(frame_file(image_dir(root, world.sequence, camera), frame),
                       view.rgb[:, :, ::-1], level)
         write_png(frame_file(instance_dir(root, world.sequence), frame), left.instance, level)
+        visibility[frame] = amodal.frame(i, left.instance)
         if progress is not None:
             progress(i + 1, len(world.frames))
+    write_attributes(root, world, visibility)
     boxes = {frame: world.boxes_in_camera(i) for i, frame in enumerate(world.frames)}
     return SynthSummary(root, world.sequence, list(world.frames), boxes, world,
                         time.perf_counter() - start)

@@ -17,10 +17,9 @@ import numpy as np
 import vsrd_mi  # noqa: F401  (selects the Mitsuba variant)
 
 from ..data.labels import INSTANCE_FACTOR
-from ..geometry.camera import NEAR_PLANE, box_to_2d
-from .texture import (car_rgb, facade_rgb, kerb_rgb, lambert, road_rgb, sidewalk_rgb, sky_rgb,
-                      terrain_rgb)
-from .world import (CAR_MATERIAL, FACADE, KERB, ROAD, SEM_SKY, SIDEWALK, TERRAIN, FrameMesh,
+from .texture import (car_rgb, facade_rgb, kerb_rgb, lambert, prop_rgb, road_rgb, sidewalk_rgb,
+                      sky_rgb, terrain_rgb)
+from .world import (CAR_MATERIAL, FACADE, KERB, PROP, ROAD, SEM_SKY, SIDEWALK, TERRAIN, FrameMesh,
                     SynthWorld)
 
 
@@ -36,23 +35,27 @@ class Hits:
 class RayCaster:
     """A Mitsuba scene holding one triangle mesh; casts batches of rays against it."""
 
-    def __init__(self, mesh: FrameMesh):
-        m = mi.Mesh("synth", len(mesh.vertices), len(mesh.faces), has_vertex_normals=False,
+    def __init__(self, vertices: np.ndarray, faces: np.ndarray):
+        m = mi.Mesh("synth", len(vertices), len(faces), has_vertex_normals=False,
                     has_vertex_texcoords=False)
         params = mi.traverse(m)
-        params["vertex_positions"] = mi.Float(mesh.vertices.astype(np.float32).ravel())
-        params["faces"] = mi.UInt32(mesh.faces.astype(np.uint32).ravel())
+        params["vertex_positions"] = mi.Float(np.asarray(vertices).astype(np.float32).ravel())
+        params["faces"] = mi.UInt32(np.asarray(faces).astype(np.uint32).ravel())
         params.update()
         self.scene = mi.load_dict({"type": "scene", "mesh": m})
 
     def cast(self, origin: np.ndarray, directions: np.ndarray) -> Hits:
-        """Intersect rays from one ``origin`` (3,) along unit ``directions`` (N, 3)."""
+        """Intersect rays from ``origin`` (one (3,) point, or one per ray (N, 3)) along
+        ``directions`` (N, 3); ``t`` is in units of the direction's length."""
         if len(directions) == 0:  # Dr.Jit aborts the process on empty launches
             return Hits(np.zeros(0, dtype=bool), np.zeros(0, dtype=np.int64), np.zeros(0))
         d = directions.astype(np.float32)
         o = np.asarray(origin, dtype=np.float32)
-        ray = mi.Ray3f(mi.Point3f(float(o[0]), float(o[1]), float(o[2])),
-                       mi.Vector3f(mi.Float(d[:, 0]), mi.Float(d[:, 1]), mi.Float(d[:, 2])))
+        if o.ndim == 1:
+            start = mi.Point3f(float(o[0]), float(o[1]), float(o[2]))
+        else:
+            start = mi.Point3f(mi.Float(o[:, 0]), mi.Float(o[:, 1]), mi.Float(o[:, 2]))
+        ray = mi.Ray3f(start, mi.Vector3f(mi.Float(d[:, 0]), mi.Float(d[:, 1]), mi.Float(d[:, 2])))
         pi = self.scene.ray_intersect_preliminary(ray)
         valid_, prim_, t_ = pi.is_valid(), pi.prim_index, pi.t
         dr.eval(valid_, prim_, t_)
@@ -122,13 +125,24 @@ def colours(world: SynthWorld, mesh: FrameMesh, i: int, points: np.ndarray,
         rgb = np.array([b.rgb for b in world.buildings], dtype=np.float64)[obj[m]]
         salt = np.array([b.salt for b in world.buildings], dtype=np.int64)[obj[m]]
         out[m] = facade_rgb(s[m] + np.abs(n[m]), points[m, 2], rgb, salt, tex)
+    m = mat == PROP
+    if np.any(m):
+        rgb = np.array([p.rgb for p in world.props], dtype=np.float64)[obj[m]]
+        salt = np.array([p.salt for p in world.props], dtype=np.int64)[obj[m]]
+        out[m] = prop_rgb(points[m], rgb, salt, tex)
+    normals = mesh.face_normals[prim]
+    cars = np.flatnonzero(mat >= CAR_MATERIAL)
+    order = cars[np.argsort(obj[cars], kind="stable")]
+    bounds = np.searchsorted(obj[order], np.arange(len(world.cars) + 1))
     for ci, car in enumerate(world.cars):
-        m = (mat >= CAR_MATERIAL) & (obj == ci)
-        if np.any(m):
+        m = order[bounds[ci]:bounds[ci + 1]]
+        if len(m):
             local = car.to_local(points[m], i)
+            lamps = car.model.lamps
+            local_n = normals[m] @ car.rotation() if lamps is not None else None
             out[m] = car_rgb(local, mat[m] - CAR_MATERIAL, np.asarray(car.rgb, dtype=np.float64),
-                             np.full(int(m.sum()), car.salt, dtype=np.int64), tex)
-    out *= lambert(mesh.face_normals[prim], tex)[:, None]
+                             np.full(len(m), car.salt, dtype=np.int64), tex, local_n, lamps)
+    out *= lambert(normals, tex)[:, None]
     return out
 
 
@@ -151,68 +165,5 @@ def render_view(world: SynthWorld, mesh: FrameMesh, caster: RayCaster, i: int,
     return View(rgb8, instance_values(mesh, hits).reshape(h, w), depth)
 
 
-
-
-@dataclass(frozen=True)
-class CarVisibility:
-    """How much of a car one frame shows (left camera), from a render of the car alone."""
-
-    instance_value: int  # pixel value in the instance map
-    visible_px: int  # pixels labelled with this car in the full render
-    inside_px: int  # pixels of the car alone that fall inside the image
-    outside_px: int  # pixels of the car alone beyond the image borders (truncation)
-    #: part of the car's box lies behind the camera's near plane, or its projection reaches more
-    #: than one image size beyond the borders
-    behind: bool
-
-    @property
-    def occluded_fraction(self) -> float:
-        """Share of the car's in-image silhouette hidden by other geometry."""
-        return 1.0 - self.visible_px / self.inside_px if self.inside_px else 1.0
-
-    @property
-    def truncated(self) -> bool:
-        return self.outside_px > 0 or self.behind
-
-
-def car_visibility(world: SynthWorld, i: int, instance_map: np.ndarray) -> list[CarVisibility]:
-    """Occlusion and truncation of every car at frame index ``i`` given its rendered instance map.
-
-    Each car is ray cast alone through every pixel-centre of its projected 3D box (extended beyond
-    the image where the box sticks out), which contains its whole silhouette.
-    """
-    w, h = world.rig.image_size
-    K = world.rig.K
-    T = world.cam_to_world(i, 0)
-    g_to_cam = world.g_to_camera(i, 0)
-    out = []
-    for car in world.cars:
-        value = car.global_id
-        visible = int(np.count_nonzero(instance_map == value))
-        box = car.box_world_g(i)
-        corners_z = (box.corners() @ g_to_cam[:3, :3].T + g_to_cam[:3, 3])[:, 2]
-        rect = box_to_2d(box, K, g_to_cam)
-        if rect is None:
-            out.append(CarVisibility(value, visible, 0, 0, bool(np.any(corners_z < NEAR_PLANE))))
-            continue
-        lo = np.floor(rect[:2]).astype(int) - 1
-        hi = np.ceil(rect[2:]).astype(int) + 1
-        # cars right beside the camera project to huge boxes: render at most one image size
-        # beyond each border and count such a car as truncated
-        size = np.array([w, h])
-        clipped = bool(np.any(lo < -size) or np.any(hi > 2 * size - 1))
-        (u0, v0), (u1, v1) = np.maximum(lo, -size), np.minimum(hi, 2 * size - 1)
-        u, v = np.meshgrid(np.arange(u0, u1 + 1, dtype=np.float64),
-                           np.arange(v0, v1 + 1, dtype=np.float64))
-        pix = np.stack([u.ravel(), v.ravel(), np.ones(u.size)], axis=1) @ np.linalg.inv(K).T
-        dirs = pix / np.linalg.norm(pix, axis=1, keepdims=True) @ T[:3, :3].T
-        hits = RayCaster(world.frame_mesh(i, cars=[car], with_static=False)).cast(T[:3, 3], dirs)
-        inside = (u.ravel() >= 0) & (u.ravel() < w) & (v.ravel() >= 0) & (v.ravel() < h)
-        out.append(CarVisibility(value, visible, int(np.count_nonzero(hits.valid & inside)),
-                                 int(np.count_nonzero(hits.valid & ~inside)),
-                                 bool(np.any(corners_z < NEAR_PLANE)) or clipped))
-    return out
-
-
-__all__ = ["Hits", "RayCaster", "View", "CarVisibility", "pixel_directions", "instance_values",
-           "colours", "render_view", "car_visibility"]
+__all__ = ["Hits", "RayCaster", "View", "pixel_directions", "instance_values", "colours",
+           "render_view"]

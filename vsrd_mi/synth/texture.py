@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .cars import GLASS, TYRE
+from .cars import BODY, GLASS, RIM, TYRE, LampLayout
 from .config import TextureConfig
 
 _GOLDEN = np.uint64(0x9E3779B97F4A7C15)
@@ -105,8 +105,13 @@ def facade_rgb(u: np.ndarray, z: np.ndarray, base_rgb: np.ndarray, salt: np.ndar
 
 
 def car_rgb(local: np.ndarray, material: np.ndarray, paint: np.ndarray, salt: np.ndarray,
-            cfg: TextureConfig) -> np.ndarray:
-    """Paint / glass / tyre colours modulated by 3D cells in the car's own frame."""
+            cfg: TextureConfig, normals: np.ndarray | None = None,
+            lamps: LampLayout | None = None) -> np.ndarray:
+    """Paint / glass / tyre / hub colours modulated by 3D cells in the car's own frame.
+
+    With ``lamps`` (and the car-frame unit ``normals`` of the hit faces), body faces that face
+    forwards / backwards are painted as lamps and number plates within the layout's bands.
+    """
     cells = [local[:, 0], local[:, 1], local[:, 2]]
     size = [cfg.car_cell] * 3
     v = cell_value(salt + SALT_CAR_GREY, cells, size, cfg.levels) - 0.5
@@ -116,7 +121,45 @@ def car_rgb(local: np.ndarray, material: np.ndarray, paint: np.ndarray, salt: np
     glass = np.array(cfg.glass_rgb, dtype=np.float64) * detail
     tyre = np.array(cfg.tyre_rgb, dtype=np.float64) * detail
     out = np.where((material == GLASS)[:, None], glass, body)
-    return np.where((material == TYRE)[:, None], tyre, out) if np.any(material == TYRE) else out
+    if np.any(material == TYRE):
+        out = np.where((material == TYRE)[:, None], tyre, out)
+    if np.any(material == RIM):
+        out = np.where((material == RIM)[:, None], np.array(cfg.rim_rgb, dtype=np.float64) * detail,
+                       out)
+    if lamps is not None and normals is not None:
+        for mask, rgb in lamp_zones(local, normals, material, lamps, cfg):
+            out = np.where(mask[:, None], np.array(rgb, dtype=np.float64) * detail, out)
+    return out
+
+
+def _within(x: np.ndarray, band: tuple[float, float]) -> np.ndarray:
+    return (x >= band[0]) & (x <= band[1])
+
+
+def lamp_zones(local: np.ndarray, normals: np.ndarray, material: np.ndarray, lamps: LampLayout,
+               cfg: TextureConfig) -> list[tuple[np.ndarray, tuple[int, int, int]]]:
+    """Masks of car-frame points painted as plates, headlamps, indicators and rear lamps (in
+    painting order) with their colours."""
+    body = material == BODY
+    front = body & (normals[:, 0] > cfg.lamp_facing)
+    rear = body & (normals[:, 0] < -cfg.lamp_facing)
+    z, ay = local[:, 2], np.abs(local[:, 1])
+    head = front & _within(z, lamps.head_z) & _within(ay, lamps.head_y)
+    return [(front & _within(z, lamps.plate_front_z) & (ay <= lamps.plate_half_width),
+             cfg.plate_rgb),
+            (rear & _within(z, lamps.plate_rear_z) & (ay <= lamps.plate_half_width), cfg.plate_rgb),
+            (head & (ay < lamps.indicator_y), cfg.headlamp_rgb),
+            (head & (ay >= lamps.indicator_y), cfg.indicator_rgb),
+            (rear & _within(z, lamps.tail_z) & _within(ay, lamps.tail_y), cfg.taillamp_rgb)]
+
+
+def prop_rgb(points: np.ndarray, base_rgb: np.ndarray, salt: np.ndarray,
+             cfg: TextureConfig) -> np.ndarray:
+    """A prop part's colour (``base_rgb`` (N, 3), ``salt`` (N,) per point) modulated by 3D
+    world cells."""
+    v = cell_value(salt, [points[:, 0], points[:, 1], points[:, 2]], [cfg.prop_cell] * 3,
+                   cfg.levels)
+    return base_rgb * lerp(cfg.prop_modulation, v)[:, None]
 
 
 def sky_rgb(directions: np.ndarray, cfg: TextureConfig) -> np.ndarray:

@@ -3,8 +3,9 @@
 World frame: z up, metres, the road surface at z = 0. The street follows a gently curving centre
 line; the ego drives in the right-hand lane. Parked cars stand in parking strips on both sides,
 moving cars drive in straight lines at constant velocity (metres per frame index) in the ego lane
-ahead of the ego or in the oncoming lane. Everything is decided by :func:`build_world` from a
-seed, so the same arguments give the same world.
+ahead of the ego or in the oncoming lane. Props (poles, signs, trees, pedestrians, bins) may stand
+on the sidewalks and between parked cars. Everything is decided by
+:func:`vsrd_mi.synth.layout.build_world` from a seed, so the same arguments give the same world.
 
 A car's ground-truth box is the tight box of its placed mesh. In KITTI-360 terms its
 ``transform`` is ``[R_z(yaw) @ diag(length, width, height) | centre]`` (local x = heading,
@@ -15,25 +16,27 @@ y = left, z = up); in a camera frame it is a :class:`~vsrd_mi.geometry.boxes.Box
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Sequence
 
 import numpy as np
 from shapely.geometry import Polygon
 
-from ..data.kitti360 import sequence_name
-from ..data.labels import CAR_LABEL_ID, INSTANCE_FACTOR, car_instance_value
+from ..data.labels import CAR_LABEL_ID, car_instance_value
 from ..data.observations import rotation_x
 from ..geometry.boxes import Box3D, yaw_matrix
-from .cars import CarModel, bundled_mesh_paths, load_car_mesh, procedural_car, scaled
+from .cars import CarModel
 from .config import RoadConfig, SynthConfig
 
-# Materials of the world mesh faces (car materials are CAR_MATERIAL + cars.BODY/GLASS/TYRE).
-ROAD, KERB, SIDEWALK, TERRAIN, FACADE = 0, 1, 2, 3, 4
+# Materials of the world mesh faces (car materials are CAR_MATERIAL + cars.BODY/GLASS/TYRE/RIM;
+# a PROP face's colour is that of the prop part its object index names).
+ROAD, KERB, SIDEWALK, TERRAIN, FACADE, PROP = 0, 1, 2, 3, 4, 5
 CAR_MATERIAL = 10
 
 # KITTI-360 / Cityscapes semantic ids written into the instance maps (stuff as bare ids).
 SEM_ROAD, SEM_SIDEWALK, SEM_BUILDING, SEM_TERRAIN, SEM_SKY = 7, 8, 11, 22, 23
+# ... and those of the props: poles, traffic signs and persons carry instance ids like cars
+# (semantic * 1000 + instance), vegetation is stuff, trash bins are things.
+SEM_POLE, SEM_TRAFFIC_SIGN, SEM_VEGETATION, SEM_PERSON, SEM_TRASH_BIN = 17, 20, 21, 24, 39
 
 #: Spacing of the dense centre-line samples (interpolated linearly), metres.
 CENTRELINE_RESOLUTION = 0.05
@@ -194,16 +197,28 @@ def _sample_s(lo: float, hi: float, step: float) -> np.ndarray:
     return np.linspace(lo, hi, n + 1)
 
 
-def build_static(cl: Centreline, road: RoadConfig, rng: np.random.Generator
+def road_edges(road: RoadConfig, parking_widths: tuple[float, float] | None = None
+               ) -> tuple[float, float]:
+    """Distances of the right (-n) and left (+n) kerbs from the centre line: the lane plus the
+    parking strip of that side (``parking_widths`` = (right, left); default the config's)."""
+    right, left = (road.parking_width,) * 2 if parking_widths is None else parking_widths
+    return road.lane_width + right, road.lane_width + left
+
+
+def build_static(cl: Centreline, road: RoadConfig, rng: np.random.Generator,
+                 parking_widths: tuple[float, float] | None = None
                  ) -> tuple[MeshParts, list[Building]]:
-    """Road, kerbs, sidewalks, terrain and building facades along the whole centre line."""
+    """Road, kerbs, sidewalks, terrain and building facades along the whole centre line.
+
+    ``parking_widths`` = (right, left) parking strip widths (default: ``road.parking_width``).
+    """
     parts = MeshParts()
     s = _sample_s(cl.s[0], cl.s[-1], road.mesh_step)
-    edge = road.lane_width + road.parking_width
-    walk = edge + road.sidewalk_width
-    parts.add(*_ribbon(cl, s, (-edge, 0.0), (edge, 0.0)), ROAD, SEM_ROAD)
+    edges = road_edges(road, parking_widths)
+    parts.add(*_ribbon(cl, s, (-edges[0], 0.0), (edges[1], 0.0)), ROAD, SEM_ROAD)
     buildings: list[Building] = []
-    for side in (-1.0, 1.0):
+    for side, edge in zip((-1.0, 1.0), edges):
+        walk = edge + road.sidewalk_width
         parts.add(*_ribbon(cl, s, (side * edge, 0.0), (side * edge, road.kerb_height)),
                   KERB, SEM_SIDEWALK)
         parts.add(*_ribbon(cl, s, (side * edge, road.kerb_height), (side * walk, road.kerb_height)),
@@ -259,10 +274,17 @@ class SynthCar:
     velocity: np.ndarray  # world metres per frame index (zero for parked cars)
     rgb: tuple[int, int, int]
     salt: int
+    #: How a parked car stands: "parallel" (facing its side's traffic direction),
+    #: "parallel_reversed", "angled" or "perpendicular"; None for moving cars.
+    parking: str | None = None
 
     @property
     def size_lwh(self) -> np.ndarray:
         return self.model.size
+
+    @property
+    def vehicle_class(self) -> str:
+        return self.model.vehicle_class or self.model.name
 
     @property
     def global_id(self) -> int:
@@ -301,6 +323,15 @@ class SynthCar:
 
 
 @dataclass(frozen=True)
+class PropPart:
+    """One coloured part of a prop (a pole, a sign's plate, a pedestrian's torso, ...)."""
+
+    kind: str
+    rgb: tuple[int, int, int]
+    salt: int
+
+
+@dataclass(frozen=True)
 class Rig:
     """Calibration of the stereo rig (see :class:`~vsrd_mi.synth.config.RigConfig`)."""
 
@@ -325,6 +356,18 @@ class SynthWorld:
     cars: list[SynthCar]
     poses: list[np.ndarray]  # IMU -> world, 4x4 per frame index
     cam0_to_world: list[np.ndarray]  # rectified cam0 -> world, 4x4 per frame index
+    #: Parts of the props (their faces are in ``static`` with material PROP, obj = part index).
+    props: list["PropPart"] = field(default_factory=list)
+    #: Per-sequence camera (pitch, roll) in degrees drawn from the rig config (None: not drawn).
+    camera_attitude: tuple[float, float] | None = None
+    #: Parking layout of each side: (side, s0, s1, layout, angle deg), side -1 right / +1 left.
+    parking_segments: list[tuple[int, float, float, str, float]] = field(default_factory=list)
+
+    def angle_to_road_deg(self, car: SynthCar) -> float:
+        """Angle between the car's length axis and the road direction at its centre (0..90 deg)."""
+        s, _ = self.centreline.to_road(car.centre(0)[None, :2])
+        a = abs(float(np.degrees(car.yaw - self.centreline.heading(s[0])))) % 180.0
+        return min(a, 180.0 - a)
 
     def cam_to_world(self, i: int, camera: int = 0) -> np.ndarray:
         """Rectified camera ``camera`` (0 left, 1 right) -> world at frame index ``i``."""
@@ -370,7 +413,7 @@ def _smooth_noise(rng: np.random.Generator, n: int, amplitude: float, period: tu
     return amplitude * out / terms
 
 
-def _ego_track(config: SynthConfig, n: int, rng: np.random.Generator
+def ego_track(config: SynthConfig, n: int, rng: np.random.Generator
                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Per-frame ego arc length, lateral jitter, yaw, pitch and roll noise."""
     ego = config.ego
@@ -386,24 +429,70 @@ def _ego_track(config: SynthConfig, n: int, rng: np.random.Generator
 FLU_TO_FRD = np.diag([1.0, -1.0, -1.0])
 
 
-def _ego_poses(config: SynthConfig, rig: Rig, cl: Centreline, track: tuple[np.ndarray, ...]
+def ego_poses(config: SynthConfig, rig: Rig, cl: Centreline, track: tuple[np.ndarray, ...],
+               attitude: tuple[float, float] = (0.0, 0.0)
                ) -> tuple[list[np.ndarray], list[np.ndarray]]:
     """IMU -> world poses and rectified cam0 -> world per frame; the camera centre sits
-    ``camera_height`` above the lane (with lateral jitter)."""
+    ``camera_height`` above the lane (with lateral jitter). ``attitude`` = (pitch, roll) in
+    radians is added to the vehicle's pitch and roll noise at every frame."""
     s, lateral, dyaw, pitch, roll = track
+    if attitude != (0.0, 0.0):
+        pitch, roll = pitch + attitude[0], roll + attitude[1]
     lane_n = -0.5 * config.road.lane_width
-    rr_inv = np.linalg.inv(homogeneous(rig.r_rect_00))  # R_rect_00 is orthonormal to ~1e-6 only
     poses, cams = [], []
     for k in range(len(s)):
-        # vehicle yaw about z, then pitch about y and roll about x, then the IMU's axis flip
-        R_imu = (rot_z(float(cl.heading(s[k])) + dyaw[k]) @ yaw_matrix(pitch[k])
-                 @ rotation_x(roll[k]) @ FLU_TO_FRD)
         cam_xy = cl.at(s[k], lane_n + lateral[k])
-        cam_centre = np.array([cam_xy[0], cam_xy[1], config.rig.camera_height])
-        pose = homogeneous(R_imu, cam_centre - R_imu @ rig.cam0_to_pose[:3, 3])
+        pose, cam = vehicle_pose(rig, float(cl.heading(s[k])) + dyaw[k], pitch[k], roll[k],
+                                 np.array([cam_xy[0], cam_xy[1], config.rig.camera_height]))
         poses.append(pose)
-        cams.append(pose @ rig.cam0_to_pose @ rr_inv)
+        cams.append(cam)
     return poses, cams
+
+
+def vehicle_pose(rig: Rig, yaw: float, pitch: float, roll: float, cam_centre: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """IMU -> world pose and rectified cam0 -> world of a vehicle with this yaw, pitch (nose down
+    positive) and roll (about its forward axis, radians) whose left camera centre is at
+    ``cam_centre``."""
+    # vehicle yaw about z, then pitch about y and roll about x, then the IMU's axis flip
+    R_imu = rot_z(yaw) @ yaw_matrix(pitch) @ rotation_x(roll) @ FLU_TO_FRD
+    pose = homogeneous(R_imu, cam_centre - R_imu @ rig.cam0_to_pose[:3, 3])
+    rr_inv = np.linalg.inv(homogeneous(rig.r_rect_00))  # R_rect_00 is orthonormal to ~1e-6 only
+    return pose, pose @ rig.cam0_to_pose @ rr_inv
+
+
+def camera_pitch_roll(cam_to_world: np.ndarray) -> tuple[float, float]:
+    """``(pitch, roll)`` of a camera in degrees relative to the z-up world.
+
+    Pitch: how far the optical axis (camera +z) points below the horizon. Roll: how far the
+    camera's +x axis (image right) points above the horizon (KITTI-360's left camera: pitch about
+    5.8-6.1 deg, roll about -0.9 deg by this measure).
+    """
+    R = np.asarray(cam_to_world, dtype=np.float64)[:3, :3]
+    return (float(np.degrees(np.arcsin(-R[2, 2]))), float(np.degrees(np.arcsin(R[2, 0]))))
+
+
+#: Newton steps of :func:`vehicle_attitude_for` (the map is nearly the identity: 3 reach 1e-12 deg).
+ATTITUDE_NEWTON_STEPS = 4
+#: Finite-difference step of its Jacobian, radians.
+ATTITUDE_FD_STEP = 1e-6
+
+
+def vehicle_attitude_for(rig: Rig, pitch_deg: float, roll_deg: float) -> tuple[float, float]:
+    """Vehicle (pitch, roll) in radians that give the left camera this :func:`camera_pitch_roll`
+    when the vehicle's noise is zero (the camera's mounting comes from the calibration)."""
+    target = np.array([pitch_deg, roll_deg])
+
+    def measure(x: np.ndarray) -> np.ndarray:
+        return np.array(camera_pitch_roll(vehicle_pose(rig, 0.0, x[0], x[1], np.zeros(3))[1]))
+
+    x = np.zeros(2)
+    for _ in range(ATTITUDE_NEWTON_STEPS):
+        f = measure(x)
+        J = np.stack([(measure(x + ATTITUDE_FD_STEP * e) - f) / ATTITUDE_FD_STEP
+                      for e in np.eye(2)], axis=1)
+        x = x + np.linalg.solve(J, target - f)
+    return float(x[0]), float(x[1])
 
 
 def make_rig(config: SynthConfig) -> Rig:
@@ -419,124 +508,18 @@ class PlacementError(ValueError):
     """The requested cars do not fit in the street (too many for its length)."""
 
 
-def _collides(candidate: SynthCar, placed: Sequence[SynthCar], n_frames: int, gap: float) -> bool:
-    moving = candidate.dynamic or any(c.dynamic for c in placed)
-    frames = range(n_frames) if moving else range(1)
-    for i in frames:
-        fp = candidate.footprint(i, pad=0.5 * gap)
-        for other in placed:
-            if (candidate.dynamic or other.dynamic or i == 0) and \
-                    fp.intersects(other.footprint(i, pad=0.5 * gap)):
+def collides(candidate: SynthCar, placed: Sequence[SynthCar], n_frames: int, gap: float) -> bool:
+    """Whether the candidate's footprint, padded by ``gap / 2``, meets any placed car's padded
+    footprint: parked pairs at frame 0, pairs with a moving car at every frame."""
+    pad = 0.5 * gap
+    still = candidate.footprint(0, pad=pad) if not candidate.dynamic else None
+    for other in placed:
+        if not candidate.dynamic and not other.dynamic:
+            if still.intersects(other.footprint(0, pad=pad)):
+                return True
+            continue
+        for i in range(n_frames):
+            fp = still if still is not None else candidate.footprint(i, pad=pad)
+            if fp.intersects(other.footprint(i, pad=pad)):
                 return True
     return False
-
-
-def _pick_model(rng: np.random.Generator, config: SynthConfig,
-                meshes: Sequence[CarModel]) -> CarModel:
-    if not meshes or rng.uniform() < config.traffic.procedural_fraction:
-        return procedural_car(rng, config.procedural)
-    model = meshes[int(rng.integers(len(meshes)))]
-    j = config.traffic.mesh_scale_jitter
-    return scaled(model, 1.0 + float(rng.uniform(-j, j)))
-
-
-def _paint(rng: np.random.Generator, config: SynthConfig) -> tuple[int, int, int]:
-    pal = config.texture.car_palette
-    return pal[int(rng.integers(len(pal)))]
-
-
-def _place_dynamic(rng: np.random.Generator, config: SynthConfig, cl: Centreline,
-                   ego_s: np.ndarray, model: CarModel, instance_id: int) -> SynthCar:
-    """A car driving straight at constant speed along the chord of its lane (ego lane ahead of
-    the ego, or the oncoming lane passing the ego)."""
-    tr, n = config.traffic, len(ego_s)
-    v = float(rng.uniform(*tr.speed)) / config.rig.frame_rate
-    length = float(model.size[0])
-    k = np.arange(n)
-    if rng.uniform() < tr.same_direction_prob:
-        lane, sign = -0.5 * config.road.lane_width, 1.0
-        s0 = float(np.max(ego_s - v * k)) + tr.follow_gap + 0.5 * length + rng.uniform(*tr.follow_extra)
-    else:
-        lane, sign = 0.5 * config.road.lane_width, -1.0
-        kp = rng.uniform(*tr.oncoming_pass) * n
-        s0 = float(np.interp(kp, k, ego_s, right=ego_s[-1] + config.ego.step * (kp - n + 1))) + v * kp
-    s_end = s0 + sign * v * max(n - 1, 1)
-    a, b = cl.at(s0, lane), cl.at(s_end, lane)
-    vel_xy = (b - a) / max(n - 1, 1)
-    yaw = float(np.arctan2(vel_xy[1], vel_xy[0]))
-    centre0 = np.array([a[0], a[1], 0.5 * model.size[2]])
-    return SynthCar(instance_id, model, True, yaw, centre0, np.array([vel_xy[0], vel_xy[1], 0.0]),
-                    _paint(rng, config), int(rng.integers(1 << 30)))
-
-
-def _place_parked(rng: np.random.Generator, config: SynthConfig, cl: Centreline,
-                  ego_s: np.ndarray, model: CarModel, instance_id: int) -> SynthCar | None:
-    """A parked car in a parking strip (None when its rotated footprint does not fit)."""
-    tr, road = config.traffic, config.road
-    side = 1.0 if rng.uniform() < 0.5 else -1.0
-    s = float(rng.uniform(ego_s[0] + tr.parked_range[0], ego_s[-1] + tr.parked_range[1]))
-    rel = np.deg2rad(rng.normal(0.0, tr.parked_yaw_jitter_deg))
-    if rng.uniform() < tr.angled_prob:
-        rel += np.deg2rad(rng.uniform(*tr.angled_yaw_deg)) * (1.0 if rng.uniform() < 0.5 else -1.0)
-    if rng.uniform() < tr.parked_reverse_prob:
-        rel += np.pi
-    # lateral half-extent of the rotated footprint, across the road
-    l, w = float(model.size[0]), float(model.size[1])
-    half_across = 0.5 * (l * abs(np.sin(rel)) + w * abs(np.cos(rel)))
-    inner = road.lane_width - tr.lane_intrusion + half_across
-    outer = road.lane_width + road.parking_width - tr.kerb_clearance - half_across
-    if inner > outer:
-        return None
-    mid = road.lane_width + 0.5 * road.parking_width + rng.uniform(-1, 1) * tr.parked_lateral_jitter
-    n = side * float(np.clip(mid, inner, outer))
-    xy = cl.at(s, n)
-    yaw = float(cl.heading(s)) + rel
-    return SynthCar(instance_id, model, False, yaw, np.array([xy[0], xy[1], 0.5 * model.size[2]]),
-                    np.zeros(3), _paint(rng, config), int(rng.integers(1 << 30)))
-
-
-def build_world(seq: int = 0, frames: int = 60, n_static: int = 4, n_dynamic: int = 2,
-                seed: int = 0, meshes: Sequence[str | Path] | None = None,
-                config: SynthConfig = SynthConfig()) -> SynthWorld:
-    """Lay out a synthetic sequence (deterministic in all arguments).
-
-    ``meshes``: car mesh files (None: the bundled CC0 meshes; empty: procedural cars only).
-    Raises :class:`PlacementError` when the cars cannot be placed without collisions and
-    :class:`~vsrd_mi.errors.DataError` for unreadable mesh files.
-    """
-    if frames < 1 or n_static < 0 or n_dynamic < 0 or seq < 0:
-        raise ValueError(f"need frames >= 1, seq >= 0 and non-negative car counts "
-                         f"(got frames={frames}, seq={seq}, static={n_static}, dynamic={n_dynamic})")
-    if n_static + n_dynamic >= INSTANCE_FACTOR:
-        raise ValueError(f"at most {INSTANCE_FACTOR - 1} cars fit the KITTI-360 instance encoding")
-    rng = np.random.default_rng([seed, seq])
-    models = [load_car_mesh(p) for p in (bundled_mesh_paths() if meshes is None else meshes)]
-    rig = make_rig(config)
-    track = _ego_track(config, frames, rng)
-    ego_s = track[0]
-    road = config.road
-    cl = Centreline(ego_s[0] - road.behind, ego_s[-1] + road.ahead,
-                    heading0=float(rng.uniform(-np.pi, np.pi)),
-                    curvature=float(rng.uniform(-1, 1)) * road.max_curvature,
-                    wavelength=float(rng.uniform(*road.curvature_wavelength)),
-                    phase=float(rng.uniform(0, 2 * np.pi)))
-    static, buildings = build_static(cl, road, rng)
-    poses, cams = _ego_poses(config, rig, cl, track)
-
-    cars: list[SynthCar] = []
-    for kind, count in (("dynamic", n_dynamic), ("parked", n_static)):
-        for _ in range(count):
-            for _try in range(config.traffic.max_tries):
-                model = _pick_model(rng, config, models)
-                place = _place_dynamic if kind == "dynamic" else _place_parked
-                car = place(rng, config, cl, ego_s, model, len(cars) + 1)
-                if car is not None and not _collides(car, cars, frames, config.traffic.min_gap):
-                    cars.append(car)
-                    break
-            else:
-                raise PlacementError(
-                    f"could not place {kind} car {len(cars) + 1} without collisions after "
-                    f"{config.traffic.max_tries} tries: ask for fewer cars or more frames")
-    frame_ids = [config.first_frame + i for i in range(frames)]
-    return SynthWorld(config, sequence_name(seq), frame_ids, rig, cl, static, buildings, cars,
-                      poses, cams)

@@ -1,0 +1,153 @@
+"""Which way a parked car faces: the evidence of its silhouettes, front against back.
+
+The box optimisation fixes a parked car's axis but not its front: a box turned end for end
+renders the same silhouette and projects to the same 2D boxes. A car's silhouette is not
+symmetric, though (bonnet and tail, the cabin's place: :mod:`vsrd_mi.geometry.silhouettes`), and
+a sequence sees it from many angles. For each parked box this module rasterises generic body
+templates fitted to the box, once facing its yaw and once turned by 180 degrees, into every frame
+where the instance is seen, and compares them with the instance's masks:
+
+* per frame, the IoU of template and mask over the pixels that can tell (the other target
+  instances' masks are left out: a car in front hides what is behind it);
+* per heading, the best template's mean IoU over the frames (:func:`heading_scores`);
+* the evidence is the difference of the two (positive: the box faces its yaw), and the box is
+  turned when the evidence for the other end exceeds ``HeadingConfig.min_evidence``.
+
+Where the evidence is weaker than that (a car seen end-on only, or too small), an optional,
+documented prior decides (``HeadingConfig.prior``: which way parked cars usually face on each side
+of a right- or left-hand traffic street); the default has none and keeps the optimiser's yaw.
+Moving cars are left alone: their velocity says where their front is.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..data.observations import Observations
+from ..geometry.boxes import Box3D, wrap_angle
+from ..geometry.camera import box_to_2d
+from ..geometry.silhouettes import BODY_TEMPLATES, BodyTemplate, rasterise_template
+from .config import HeadingConfig
+
+#: Pixels added around a view's region of interest (mask box and projected box).
+ROI_MARGIN_PX = 3
+
+
+@dataclass(frozen=True)
+class HeadingDecision:
+    """Outcome for one box: the box to keep, and why."""
+
+    box: Box3D
+    #: Mean-IoU advantage of the box's own heading over the opposite one (before any turn).
+    evidence: float
+    #: Frames that took part.
+    views: int
+    #: ``"silhouette"``, ``"prior"``, ``"kept"`` (no evidence, no prior) or ``"moving"``.
+    source: str
+    #: Whether the box was turned by 180 degrees.
+    turned: bool
+
+    def to_dict(self) -> dict:
+        """JSON record; ``evidence`` is for the kept box's own front (positive: the silhouettes agree)."""
+        return {"evidence": -self.evidence if self.turned else self.evidence, "views": self.views,
+                "source": self.source, "turned": self.turned}
+
+
+def turned(box: Box3D) -> Box3D:
+    """The same box facing the other way."""
+    return Box3D(box.centre, box.size, float(wrap_angle(box.yaw + np.pi)), box.velocity, box.dynamic,
+                 box.instance_id)
+
+
+def _roi(mask_box: np.ndarray, proj: np.ndarray | None, image_size: tuple[int, int]) -> tuple[int, int, int, int]:
+    boxes = [mask_box] + ([proj] if proj is not None else [])
+    lo = np.min([b[:2] for b in boxes], axis=0) - ROI_MARGIN_PX
+    hi = np.max([b[2:] for b in boxes], axis=0) + ROI_MARGIN_PX
+    w, h = image_size
+    x0, y0 = (int(max(np.floor(v), 0)) for v in lo)
+    x1, y1 = int(min(np.ceil(hi[0]) + 1, w)), int(min(np.ceil(hi[1]) + 1, h))
+    return x0, y0, x1, y1
+
+
+def _iou(a: np.ndarray, b: np.ndarray, care: np.ndarray) -> float:
+    union = np.count_nonzero((a | b) & care)
+    return float(np.count_nonzero(a & b & care)) / union if union else 0.0
+
+
+def _view_scores(templates: tuple[BodyTemplate, ...], boxes: tuple[Box3D, Box3D], w2c: np.ndarray,
+                 K: np.ndarray, roi: tuple[int, int, int, int], mask: np.ndarray,
+                 care: np.ndarray) -> np.ndarray | None:
+    """``(templates, 2)`` IoUs of each template facing either way in one frame (None when a
+    template reaches behind the camera there)."""
+    row = np.zeros((len(templates), 2))
+    for k, template in enumerate(templates):
+        for side, b in enumerate(boxes):
+            sil = rasterise_template(template, b, w2c, K, roi)
+            if sil is None:
+                return None
+            row[k, side] = _iou(sil, mask, care)
+    return row
+
+
+def heading_scores(box: Box3D, n: int, obs: Observations,
+                   templates: tuple[BodyTemplate, ...] = BODY_TEMPLATES,
+                   min_mask_pixels: int = HeadingConfig.min_mask_pixels) -> tuple[float, float, int]:
+    """``(score facing box.yaw, score facing the other way, frames used)`` of box ``n`` (matched
+    to instance ``n`` of ``obs``): per heading the best template's mean silhouette IoU
+    over the frames where the instance's mask has at least ``min_mask_pixels`` pixels."""
+    back = turned(box)
+    per_template = 0.0
+    views = 0
+    for f in range(obs.num_frames):
+        mask_full = obs.masks[f, n]
+        if np.count_nonzero(mask_full) < min_mask_pixels:
+            continue
+        w2c = np.linalg.inv(obs.cam_to_opt[f])
+        moved, moved_back = box.at_offset(float(obs.dt[f])), back.at_offset(float(obs.dt[f]))
+        proj = box_to_2d(moved, obs.K[f], world_to_cam=w2c, image_size=obs.image_size)
+        x0, y0, x1, y1 = roi = _roi(obs.boxes2d[f, n], proj, obs.image_size)
+        mask = mask_full[y0:y1, x0:x1]
+        others = np.delete(obs.masks[f], n, axis=0)[:, y0:y1, x0:x1].any(axis=0)
+        care = ~(others & ~mask)
+        row = _view_scores(templates, (moved, moved_back), w2c, obs.K[f], roi, mask, care)
+        if row is not None:
+            per_template += row
+            views += 1
+    if views == 0:
+        return 0.0, 0.0, 0
+    mean = per_template / views
+    return float(mean[:, 0].max()), float(mean[:, 1].max()), views
+
+
+def prior_faces_yaw(box: Box3D, prior: str) -> bool | None:
+    """Whether the traffic-side prior says ``box`` faces its own yaw (None for no prior)."""
+    if prior == "none":
+        return None
+    along_ego = box.heading[2] >= 0.0               # optimisation frame: the ego looks along +z
+    on_right = box.centre[0] >= 0.0
+    with_traffic = on_right if prior == "right-hand" else not on_right
+    return along_ego == with_traffic
+
+
+def decide_heading(box: Box3D, n: int, obs: Observations, cfg: HeadingConfig) -> HeadingDecision:
+    """Front / back of one optimised box (``n``: its instance in ``obs``), see the module doc."""
+    if box.dynamic:
+        return HeadingDecision(box, 0.0, 0, "moving", False)
+    fwd, bwd, views = heading_scores(box, n, obs, min_mask_pixels=cfg.min_mask_pixels)
+    evidence = fwd - bwd
+    if abs(evidence) > cfg.min_evidence:
+        turn, source = evidence < 0, "silhouette"
+    else:
+        faces = prior_faces_yaw(box, cfg.prior)
+        turn, source = (False, "kept") if faces is None else (not faces, "prior")
+    return HeadingDecision(turned(box) if turn else box, evidence, views, source, turn)
+
+
+def decide_headings(boxes: list[Box3D], instance_index: np.ndarray, obs: Observations,
+                    cfg: HeadingConfig) -> list[HeadingDecision]:
+    """:func:`decide_heading` for every box; ``instance_index[k]`` is box k's instance in ``obs``."""
+    if not cfg.enabled:
+        return [HeadingDecision(b, 0.0, 0, "kept", False) for b in boxes]
+    return [decide_heading(b, int(i), obs, cfg) for b, i in zip(boxes, instance_index)]
