@@ -20,7 +20,6 @@ import mitsuba as mi
 
 from vsrd_plugins.common import golden_minimum, illinois_root
 from vsrd_plugins.silhouette import VSRDSilhouetteIntegrator
-from vsrd_plugins.silhouette import adaptive as adaptive_module
 from vsrd_plugins.silhouette import bands as bands_module
 from vsrd_plugins.silhouette import residual_search
 from vsrd_plugins.silhouette.bands import adaptive_bands
@@ -32,8 +31,8 @@ from vsrd_plugins.silhouette.residual_search import (ChordGrid, PairScan, kink_m
                                                      residual_peaks)
 from vsrd_plugins.silhouette.settings import halves
 from vsrd_plugins.silhouette.slots import KINK_MINIMA, GapPeak, Slot, sub_sample
-from vsrd_mi.bench.measure import central_differences, fd_steps, new_kernels, reference_labels, weighted_loss
-from vsrd_mi.bench.scenes import (BOX_KEYS, BenchConfig, case_data, load_integrator, random_scene, silhouette_integrator,
+from vsrd_mi.bench.measure import central_differences, fd_steps, new_kernels, reference_labels
+from vsrd_mi.bench.scenes import (BOX_KEYS, BenchConfig, random_scene, silhouette_integrator,
                                   training_rays)
 from vsrd_plugins import box_properties
 
@@ -227,40 +226,6 @@ def test_lengthwise_miss_spreads_its_band_over_the_chord(seed, n_inst):
     0.0134 -> 0.0081)."""
     err = residual_label_error(seed, n_inst, {None: {}}, quantile=1.0)
     assert err[None] <= 0.01
-
-
-def test_residual_sparse_gradients_keep_the_gradient(monkeypatch):
-    """With the residual field, samples strictly inside a monotone run of the scene SDF with
-    one instance near leave the AD graph (``residual_sparse_gradients``): the telescoping
-    opacity has zero derivative there. Labels are unchanged and the box gradient agrees with
-    the full graph's (measured relative difference 2-5e-4 on the benchmark's scenes, from
-    float rounding and the culling bound), while most lanes are frozen."""
-    rng = np.random.default_rng(9)
-    scene = random_scene(rng, 3)
-    o, d, t = training_rays(rng, scene, 256)
-    rays = to_mi(o, d, t)
-    kw = dict(sharpness=10.0, temperature=0.1, residual=True)
-    out = {}
-    for sparse in (False, True):
-        it = make(scene, residual_sparse_gradients=sparse, **kw)
-        out[sparse] = labels_and_grads(it, lambda i: i.render_rays(*rays), [1.0, 2.0, 3.0])
-    np.testing.assert_allclose(out[True][0], out[False][0], atol=1e-6)
-    full, sparse = out[False][1], out[True][1]
-    assert np.linalg.norm(full) > 0.0
-    assert np.linalg.norm(sparse - full) <= 2e-3 * np.linalg.norm(full)
-    # and it does freeze most of the lanes
-    frozen = []
-    original = adaptive_module.frozen_lanes
-
-    def spy(*args):
-        mask = original(*args)
-        frozen.append(float(np.mean(np.array(mask))))
-        return mask
-
-    monkeypatch.setattr(adaptive_module, "frozen_lanes", spy)
-    with dr.suspend_grad():
-        make(scene, **kw).render_rays(*rays)
-    assert frozen and frozen[0] > 0.5, frozen
 
 
 @pytest.mark.parametrize("residual", [False, True])
@@ -1154,27 +1119,6 @@ def test_residual_peaks_move_to_the_instance_sdfs_crossing():
     assert abs(t[0] - 5.0 / 3.0) <= 1e-4, t  # 0.5 (t - 1) = 2 - t
     assert abs(lam[0] - 1.0 / 1.5) <= 1e-3, lam  # -g_b / (g_a - g_b) = 1 / 1.5
     assert t[1] == np.float32(2.0) and lam[1] == -1.0, (t, lam)
-
-
-def test_residual_grid_keeps_the_sparse_gradient():
-    """With the chord grid, the interpolated values sort the samples into frozen or not with a
-    margin (``GRID_TOLERANCE``) above the interpolation error, and the candidates get exact
-    values: the sparse box gradient stays within 2e-3 of the full graph's on the integrator
-    benchmark's 3-box residual scene (measured 3.4e-4; 4.2e-2 when the interpolated values
-    alone decided, which froze shallow extrema of the exact ``B + R``)."""
-    cfg = BenchConfig()
-    data, _ = case_data(cfg, 3, True)
-    batch = data.batch(4096)
-    grads = {}
-    for sparse in (False, True):
-        it = load_integrator(data.boxes, "adaptive", True, cfg, residual_sparse_gradients=sparse)
-        for k in BOX_KEYS:
-            dr.enable_grad(it.field.params[k])
-        labels = it.render_rays(batch.o, batch.d, batch.time)
-        dr.backward(weighted_loss(labels[:it.field.n], batch.weights))
-        grads[sparse] = np.concatenate([np.array(dr.grad(it.field.params[k])) for k in BOX_KEYS])
-    rel = np.linalg.norm(grads[True] - grads[False]) / np.linalg.norm(grads[False])
-    assert rel <= 2e-3, rel
 
 
 @pytest.mark.parametrize("residual", [False, True])

@@ -155,8 +155,7 @@ class InstanceField:
     def lane_sdfs(self, dec: DecodedBoxes, p: mi.Point3f, time: mi.Float, inst: mi.UInt32,
                   weights: mi.TensorXf | None = None, reach: float | mi.Float = 0.0,
                   ridge: tuple[mi.UInt32, mi.Vector3f, float | mi.Float] | None = None,
-                  grad_reach: float | mi.Float | None = None, values: mi.Float | None = None,
-                  frozen: mi.Bool | None = None) -> mi.Float:
+                  grad_reach: float | mi.Float | None = None) -> mi.Float:
         """SDF of instance ``inst[i]`` at point ``p[i]`` (one instance per lane).
 
         The per-lane counterpart of :meth:`instance_sdfs` for samplers that evaluate only the
@@ -167,12 +166,9 @@ class InstanceField:
         enlarged by ``grad_reach`` (and by ``reach`` with a residual) get the detached box SDF:
         the same values, but only the lanes near their box enter the AD graph (the backward pass
         runs over those alone; the box part's gradient is computed in closed form,
-        :class:`_LaneBoxGradient`, ridge lanes included, which then must lie within
+        :func:`~.lane_gradient.lane_box_sdf`, ridge lanes included, which then must lie within
         ``grad_reach`` of their box: a deepest point inside it does). A sampler may pass the
-        distance beyond which an SDF value can no longer move its integral. With ``grad_reach``,
-        ``values`` (this method's detached result) and ``frozen``, the ``frozen`` lanes keep
-        ``values`` and stay out of the AD graph too: a sampler may pass the lanes whose
-        gradient it knows to vanish.
+        distance beyond which an SDF value can no longer move its integral.
         """
         if grad_reach is None:
             f = self.lane_sdfs_ad(dec, p, time, inst, weights, reach)
@@ -184,9 +180,6 @@ class InstanceField:
                 # stay beyond it
                 live_reach = grad_reach if weights is None else dr.maximum(grad_reach, reach)
                 near = f <= live_reach
-                if frozen is not None:
-                    near = near & ~frozen
-                    f = dr.select(near, f, dr.detach(values))  # box part only where it is live
                 dr.eval(f, near)  # one kernel for both (compress would evaluate the mask alone)
                 live = dr.compress(near)
             if dr.width(live):

@@ -112,8 +112,9 @@ def sample_points(ray_idx: mi.UInt32, o, d, time, t: mi.Float, m: int):
 def integrate(sdfs: list[mi.Float], m: int, sharpness: mi.Float, temperature: mi.Float,
                peak: tuple[mi.UInt32, mi.UInt32, mi.Float] | None = None) -> list[mi.Float]:
     """Differentiable NeuS integral of instance SDFs at ``m`` sorted samples per ray
-    (``peak``: per lane the indices ``a, b`` of two instances crossing at a gap peak and the envelope
-    weight of ``a``, ``-1`` for none, see :func:`~.bands.gap_peaks`)."""
+    with sharpness ``s`` and softmin temperature ``tau`` (``peak``: per lane the indices ``a, b``
+    of two instances crossing at a gap peak and the envelope weight of ``a``, ``-1`` for none,
+    see :func:`~.bands.gap_peaks`)."""
     n = dr.width(sdfs[0]) // m
     with dr.suspend_grad():
         lane = dr.arange(mi.UInt32, n * m)
@@ -123,12 +124,11 @@ def integrate(sdfs: list[mi.Float], m: int, sharpness: mi.Float, temperature: mi
     f = scene_sdf(sdfs)
     if peak is not None and len(sdfs) > 1:
         f = crossing_gradient(f, sdfs, *peak)
-    s = sharpness
     nexts = dr.custom(NextSample, sdfs, m)
     f_next = scene_sdf(nexts)
-    w, log1ma = interval_weights(s, f, f_next, last, m)
+    w, log1ma = interval_weights(sharpness, f, f_next, last, m)
     labels = None
-    for theta in accrual_quantiles(s, f, f_next, log1ma):
+    for theta in accrual_quantiles(sharpness, f, f_next, log1ma):
         at = dr.custom(EvalTogether, [a + (b - a) * theta for a, b in zip(sdfs, nexts)])
         lab = softmin_labels(at, temperature)
         labels = lab if labels is None else [x + y for x, y in zip(labels, lab)]

@@ -115,7 +115,6 @@ def adaptive_groups(ctx: SamplingContext, bands: Bands) -> Iterator[SampleGroup]
             j = q % per
             rows = dr.gather(mi.UInt32, sub, r)
             sl = [slots[b].map(lambda v: dr.gather(mi.Float, v, rows)) for b in range(g)]
-            k1, k2 = halves(kk)
             # this lane's own sample value: entry, K/2 samples in (lo, mid], K/2 in (mid, hi],
             # the first tail in (hi, extra), extra, the second tail in (extra, tail end], and
             # the gap peak after the band (its own one-sample group in the merge)
@@ -189,4 +188,4 @@ def adaptive_groups(ctx: SamplingContext, bands: Bands) -> Iterator[SampleGroup]
                 own = dr.zeros(mi.UInt32, na * m)
                 dr.scatter(own, band, r * m + rank)
         # yield outside ``suspend_grad``: the consumer differentiates the integral
-        yield SampleGroup(rays, ts, m, active, inst, deepest, (peak_a, peak_b, peak_lam), own, sub, kink_lam, real)
+        yield SampleGroup(rays, ts, m, active, inst, deepest, (peak_a, peak_b, peak_lam), own, kink_lam, real)

@@ -79,9 +79,6 @@ class SilhouetteSettings:
     #: With the chord grid: tabulate ``R`` per instance on a box-local lattice this many radians
     #: apart where that costs fewer MLP evaluations than the grid's points (0: never).
     residual_lattice: float = 0.35
-    #: With the residual field: samples whose derivative vanishes (strictly inside a monotone run
-    #: of the scene SDF, one instance near) keep their values but leave the AD graph.
-    residual_sparse_gradients: bool = True
     #: How gradients reach the residual MLP: ``fused`` (hand-written derivatives around one
     #: cooperative-vector kernel, LLVM) or ``tensor`` (Dr.Jit AD through tensor-mode matmuls).
     residual_gradients: str = "fused"

@@ -124,7 +124,6 @@ class SampleGroup(NamedTuple):
     #: (``-1``: no peak), see :func:`~.bands.gap_peaks`
     peak: tuple
     own: mi.UInt32 | None  #: per sample its band in an isolated group (``None`` otherwise)
-    rows: mi.UInt32  #: the group's rays as indices into the band search's rays (its pairs' rays)
     #: per sample at a kink of its band's box where ``B + R`` has a minimum (``deepest`` names
     #: the band) the envelope weight of the face before it, else ``-1`` (see :class:`Slot`)
     kink_lam: mi.Float
