@@ -30,8 +30,8 @@ from vsrd_mi.scene.builder import load_scene
 from vsrd_mi.scene.sensors import perspective_sensor
 
 ROOT = Path(__file__).resolve().parents[1] / "scenes" / "kitti360-synth"
-#: Adam learning rates per raw parameter (a unit of raw centre moves a box ~30 m, see sdf.BoxRanges).
-LR = {"vsrd.box_centre": 2e-3, "vsrd.box_yaw": 1e-2, "vsrd.box_dims": 8e-2}
+#: Adam learning rates per box parameter (m, rad, m): about the step a box moves per iteration.
+LR = {"vsrd.centre": 0.05, "vsrd.yaw": 0.02, "vsrd.size": 0.02}
 LR_DECAY = 0.1  # final / initial learning rate
 S_START, S_END, RAMP = 2.0, 10.0, 0.6  # sharpness (1/m) from blurred to sharp over 60 % of the steps
 PERTURB = {"centre_m": 1.5, "yaw_rad": 0.3, "size_frac": 0.2}  # centre: std along x and z
@@ -56,19 +56,19 @@ def perturb(boxes: list[Box3D], rng: np.random.Generator, size: bool) -> list[Bo
     return out
 
 
-def set_boxes(params: mi.SceneParameters, ranges, boxes: list[Box3D]) -> None:
-    """Write boxes into the integrator's raw parameters through ``mi.traverse``."""
-    dims, centre = ranges.encode(np.stack([b.centre for b in boxes]), np.stack([b.size for b in boxes]))
-    params["vsrd.box_dims"], params["vsrd.box_centre"] = to_float(dims), to_float(centre)
-    params["vsrd.box_yaw"] = to_float([[np.cos(b.yaw), np.sin(b.yaw)] for b in boxes])
-    params["vsrd.box_velocity"] = to_float([b.velocity for b in boxes])
-    params["vsrd.box_dynamic"] = to_float([float(b.dynamic) for b in boxes])
+def set_boxes(params: mi.SceneParameters, boxes: list[Box3D]) -> None:
+    """Write boxes into the integrator's parameters (metres, radians) through ``mi.traverse``."""
+    params["vsrd.centre"] = to_float([b.centre for b in boxes])
+    params["vsrd.size"] = to_float([b.size for b in boxes])
+    params["vsrd.yaw"] = to_float([b.yaw for b in boxes])
+    params["vsrd.velocity"] = to_float([b.velocity for b in boxes])
+    params["vsrd.dynamic"] = to_float([float(b.dynamic) for b in boxes])
     params.update()
 
 
 def current_boxes(scene: mi.Scene, like: list[Box3D]) -> list[Box3D]:
-    b = scene.integrator().field.numpy_boxes()
-    return [Box3D(b["centres"][n], b["sizes"][n], b["yaws"][n], o.velocity, o.dynamic, o.instance_id)
+    b = scene.integrator().boxes()
+    return [Box3D(b["centre"][n], b["size"][n], b["yaw"][n], o.velocity, o.dynamic, o.instance_id)
             for n, o in enumerate(like)]
 
 
@@ -97,7 +97,7 @@ def main() -> None:
     params = mi.traverse(scene)
     truth = ground_truth(Sequence(args.root, 0), obs)
     start = perturb(truth, np.random.default_rng(args.seed), args.fit_size)
-    set_boxes(params, scene.integrator().field.ranges, start)
+    set_boxes(params, start)
 
     # low-resolution training views (target + evenly spread frames); their masks are the targets
     picks = np.unique(np.linspace(0, obs.num_frames - 1, args.views).round().astype(int))
@@ -111,7 +111,7 @@ def main() -> None:
     mi.util.write_bitmap(str(out / "masks.png"), colourise(masks, box_colours(n)))
     iou_before = [iou3d(b, t) for b, t in zip(current_boxes(scene, start), truth)]
 
-    lrs = {k: v for k, v in LR.items() if args.fit_size or k != "vsrd.box_dims"}
+    lrs = {k: v for k, v in LR.items() if args.fit_size or k != "vsrd.size"}
     opt = mi.ad.Adam(lr=1.0, params={k: params[k] for k in lrs})
     for step in range(args.steps):
         x = step / max(args.steps - 1, 1)

@@ -20,7 +20,8 @@ import vsrd_mi  # noqa: F401  (selects the Mitsuba variant, registers the plugin
 import drjit as dr
 import mitsuba as mi
 
-from vsrd_plugins.sdf import InstanceField, ResidualField, instance_properties
+from vsrd_plugins import box_properties
+from vsrd_plugins.sdf import InstanceField, ResidualField
 from vsrd_plugins.silhouette import VSRDSilhouetteIntegrator
 from vsrd_mi.export.kitti_labels import label_from_box, write_labels
 from vsrd_mi.geometry import boxes2d
@@ -29,6 +30,7 @@ from vsrd_mi.optimise import losses
 from vsrd_mi.optimise.config import CarProfile, default_config
 from vsrd_mi.optimise.losses import to_float
 from vsrd_mi.optimise.optimiser import EIKONAL_SPREAD, BoxOptimiser, Convergence, cosine
+from vsrd_mi.optimise.parameters import VELOCITY_LATENT
 
 SCENE_ROOT = os.path.join(os.path.dirname(__file__), "..", "scenes", "kitti360-synth")
 TARGET_FRAME = 14
@@ -40,9 +42,9 @@ def values(x) -> np.ndarray:
 
 def field_of(centres, sizes, yaws, velocities=None, dynamic=None, **extra) -> InstanceField:
     p = mi.Properties()
-    for k, v in {**instance_properties(centres, sizes, yaws, velocities, dynamic), **extra}.items():
+    for k, v in {**box_properties(centres, sizes, yaws, velocities, dynamic), **extra}.items():
         p[k] = v
-    return InstanceField(p)
+    return InstanceField(p, "test")
 
 
 # ----------------------------------------------------------------------------------------------
@@ -140,9 +142,9 @@ def straight_ahead():
 
 def test_projection_of_a_box_straight_ahead_by_hand():
     field, centre, size = straight_ahead()
-    b = field.numpy_boxes()
-    np.testing.assert_allclose(b["centres"][0], centre, atol=2e-5)
-    np.testing.assert_allclose(b["sizes"][0], size, atol=2e-6)
+    b = field.boxes()
+    np.testing.assert_allclose(b["centre"][0], centre, atol=2e-5)
+    np.testing.assert_allclose(b["size"][0], size, atol=2e-6)
     lanes = losses.ProjectionLanes(np.array([0]), np.zeros(1), np.eye(4)[None], np.zeros((1, 4)), K, IMAGE_BOUNDS)
     x1, y1, x2, y2, valid = losses.projected_boxes(field.decode(), lanes)
     # corners x in {-0.5, 1.5}, y in {-0.6, 1.0}, nearest face z = 8: u = 500 x / 8 + 320, v = 500 y / 8 + 240
@@ -150,7 +152,7 @@ def test_projection_of_a_box_straight_ahead_by_hand():
     assert by_hand == [288.75, 202.5, 413.75, 302.5]
     got = np.array([values(v)[0] for v in (x1, y1, x2, y2)])
     np.testing.assert_allclose(got, by_hand, atol=2e-3)
-    np.testing.assert_allclose(got, np_footprint(b["centres"][0], b["sizes"][0], 0.0, np.eye(4)), atol=2e-4)
+    np.testing.assert_allclose(got, np_footprint(b["centre"][0], b["size"][0], 0.0, np.eye(4)), atol=2e-4)
     assert bool(values(valid)[0])
 
 
@@ -177,8 +179,8 @@ def test_car_profile_projection_by_hand():
     got = np.array([values(v)[0] for v in (x1, y1, x2, y2)])
     by_hand = [288.75, 202.5, 413.75, 240 + 500 * 1.0 / 8.9]
     np.testing.assert_allclose(got, by_hand, atol=2e-3)
-    b = field.numpy_boxes()
-    np.testing.assert_allclose(got, np_profile_footprint(b["centres"][0], b["sizes"][0], 0.0, np.eye(4), 0.25, 0.9),
+    b = field.boxes()
+    np.testing.assert_allclose(got, np_profile_footprint(b["centre"][0], b["size"][0], 0.0, np.eye(4), 0.25, 0.9),
                                atol=2e-4)
     # a zero profile is the box's corners
     zero = losses.projected_boxes(field.decode(), lanes, CarProfile(clearance=0.0, overhang=0.0, corner=0.0, mirror=0.0))
@@ -198,11 +200,11 @@ def test_car_profile_parts_are_capped_on_small_boxes():
     """A 1 m long, 0.5 m tall box: the overhang (0.9 m) and the clearance (0.25 m) are capped at
     0.3 of the length and height, so the wheel box keeps 0.4 m and the body 0.35 m."""
     field = field_of(np.array([[0.0, 0.5, 10.0]]), np.array([[1.0, 0.5, 1.0]]), np.zeros(1))
-    b = field.numpy_boxes()
+    b = field.boxes()
     lanes = losses.ProjectionLanes(np.array([0]), np.zeros(1), np.eye(4)[None], np.zeros((1, 4)), K, IMAGE_BOUNDS)
     got = losses.projected_boxes(field.decode(), lanes, CarProfile(clearance=0.25, overhang=0.9, corner=0.0, mirror=0.0))
-    size = b["sizes"][0]
-    expected = np_profile_footprint(b["centres"][0], size, 0.0, np.eye(4), min(0.25, 0.3 * size[1]),
+    size = b["size"][0]
+    expected = np_profile_footprint(b["centre"][0], size, 0.0, np.eye(4), min(0.25, 0.3 * size[1]),
                                     min(0.9, 0.3 * size[2]))
     np.testing.assert_allclose([values(v)[0] for v in got[:4]], expected, atol=2e-3)
     assert bool(values(got[4])[0])
@@ -233,11 +235,11 @@ def test_car_profile_cut_corners_project_the_octagonal_prism(yaw):
     effect on the sides' extent at the near face, oblique views pull both sides in."""
     centre, size = np.array([0.5, 0.2, 12.0]), np.array([1.8, 1.5, 4.4])
     field = field_of(centre[None], size[None], np.array([yaw]))
-    b = field.numpy_boxes()
+    b = field.boxes()
     lanes = losses.ProjectionLanes(np.array([0]), np.zeros(1), np.eye(4)[None], np.zeros((1, 4)), K, IMAGE_BOUNDS)
     profile = CarProfile(clearance=0.25, overhang=0.9, corner=0.3, mirror=0.0)
     got = np.array([values(v)[0] for v in losses.projected_boxes(field.decode(), lanes, profile)[:4]])
-    expected = np_cut_corner_footprint(b["centres"][0], b["sizes"][0], float(b["yaws"][0]), np.eye(4), 0.25, 0.9, 0.3)
+    expected = np_cut_corner_footprint(b["centre"][0], b["size"][0], float(b["yaw"][0]), np.eye(4), 0.25, 0.9, 0.3)
     np.testing.assert_allclose(got, expected, atol=2e-3)
     uncut = np.array([values(v)[0] for v in losses.projected_boxes(
         field.decode(), lanes, CarProfile(clearance=0.25, overhang=0.9, corner=0.0, mirror=0.0))[:4]])
@@ -263,15 +265,15 @@ def test_car_profile_cut_corners_alone_act_without_clearance():
     """With no clearance the body reaches the ground and no wheel part is added, so ``corner``
     acts on its own (the wheel part, the full box then, would cover the cut corners)."""
     field = field_of(np.array([[0.5, 0.2, 12.0]]), np.array([[1.8, 1.5, 4.4]]), np.array([0.6]))
-    b = field.numpy_boxes()
+    b = field.boxes()
     lanes = losses.ProjectionLanes(np.array([0]), np.zeros(1), np.eye(4)[None], np.zeros((1, 4)), K, IMAGE_BOUNDS)
     got = losses.projected_boxes(field.decode(), lanes, CarProfile(clearance=0.0, overhang=0.0, corner=0.3, mirror=0.0))
-    w, h, l = 0.5 * b["sizes"][0]
+    w, h, l = 0.5 * b["size"][0]
     plan = [(sx * w, sz * (l - 0.3)) for sx in (-1, 1) for sz in (-1, 1)] + [
         (sx * (w - 0.3), sz * l) for sx in (-1, 1) for sz in (-1, 1)]
-    yaw = float(b["yaws"][0])
+    yaw = float(b["yaw"][0])
     R = np.array([[math.cos(yaw), 0, math.sin(yaw)], [0, 1, 0], [-math.sin(yaw), 0, math.cos(yaw)]])
-    cam = b["centres"][0] + np.array([(x, y, z) for x, z in plan for y in (-h, h)]) @ R.T
+    cam = b["centre"][0] + np.array([(x, y, z) for x, z in plan for y in (-h, h)]) @ R.T
     uv = cam @ K.T
     uv = uv[:, :2] / uv[:, 2:]
     np.testing.assert_allclose([values(v)[0] for v in got[:4]],
@@ -287,8 +289,8 @@ def test_car_profile_rejects_negative_values():
 @pytest.mark.parametrize("containment, excess", [(False, 0.0), (True, 0.0), (True, 0.25), (True, 1.0)])
 def test_projection_loss_by_hand(containment, excess):
     field, _, _ = straight_ahead()
-    b = field.numpy_boxes()
-    pred = np_footprint(b["centres"][0], b["sizes"][0], 0.0, np.eye(4))  # ~ (288.75, 202.5, 413.75, 302.5)
+    b = field.boxes()
+    pred = np_footprint(b["centre"][0], b["size"][0], 0.0, np.eye(4))  # ~ (288.75, 202.5, 413.75, 302.5)
     mask = np.array([289.25, 200.0, 410.5, 305.0])
     # the mask box's parts outside the projected box: 0, 2.5, 0, 2.5 (Huber 0 + 2 + 0 + 2);
     # the projected box's parts outside the mask box: 0.5, 0, 3.25, 0 (Huber 0.125 + 0 + 2.75 + 0)
@@ -340,16 +342,16 @@ def two_box_lanes():
 
 def test_projection_loss_of_moving_box_matches_numpy():
     field, lanes = two_box_lanes()
-    b = field.numpy_boxes()
+    b = field.boxes()
     expected = 0.0
     for lane in range(3):
         k, dt = int(np.array(lanes.box)[lane]), float(np.array(lanes.dt)[lane])
-        centre = b["centres"][k] + b["dynamic"][k] * b["velocities"][k] * dt
+        centre = b["centre"][k] + b["dynamic"][k] * b["velocity"][k] * dt
         w2c = np.stack([np.array(lanes.rot[i][j])[lane] for i in range(3) for j in range(3)]).reshape(3, 3)
         T = np.eye(4)
         T[:3, :3] = w2c
         T[:3, 3] = [np.array(lanes.trans[i])[lane] for i in range(3)]
-        pred = np_footprint(centre, b["sizes"][k], b["yaws"][k], T)
+        pred = np_footprint(centre, b["size"][k], b["yaw"][k], T)
         mask = np.array([np.array(lanes.target[i])[lane] for i in range(4)])
         expected += W_HUBER * np_huber(pred - mask) + W_DIOU * (1.0 - np_diou(pred, mask))
     got = values(losses.projection_loss(field.decode(), lanes, BETA, W_HUBER, W_DIOU))[0]
@@ -383,21 +385,21 @@ def ad_and_central_differences(field, keys, loss, eps: dict) -> tuple[dict, dict
 @pytest.mark.parametrize("profile", [None, CarProfile(clearance=0.25, overhang=0.9, corner=0.0, mirror=0.0), CarProfile()])
 def test_projection_loss_gradients_match_finite_differences(profile):
     field, lanes = two_box_lanes()
-    keys = ("box_centre", "box_dims", "box_yaw", "box_velocity")
-    # steps: ~1 mm of centre, ~0.2 mm of half-size, ~0.2 mrad of yaw, 0.2 mm/frame of velocity
-    # (~0.05-0.1 px: smaller than the pixel errors, so no Huber or corner switch in between)
-    eps = {"box_centre": 1e-4, "box_dims": 5e-4, "box_yaw": 2e-4, "box_velocity": 2e-4}
+    keys = ("centre", "size", "yaw", "velocity")
+    # steps: 1 mm of centre, 0.4 mm of size, 0.2 mrad of yaw, 0.2 mm/frame of velocity (~0.05-0.1
+    # px: smaller than the pixel errors, so no Huber or corner switch in between)
+    eps = {"centre": 1e-3, "size": 4e-4, "yaw": 2e-4, "velocity": 2e-4}
     ad, fd = ad_and_central_differences(
         field, keys, lambda dec: losses.projection_loss(dec, lanes, BETA, W_HUBER, W_DIOU, profile=profile), eps)
     checked = 0
     for key in keys:
         for i in range(len(ad[key])):
-            if key == "box_velocity" and i < 3:
+            if key == "velocity" and i < 3:
                 assert np.all(ad[key][:3] == 0)  # the static box's velocity does not count
                 continue
             assert ad[key][i] == pytest.approx(fd[key][i], rel=1e-2, abs=1e-2), (key, i, ad[key][i], fd[key][i])
             checked += 1
-    assert checked == 6 + 6 + 4 + 3
+    assert checked == 6 + 6 + 2 + 3
     assert max(abs(v).max() for v in ad.values()) > 1.0  # the gradients are not all ~0
 
 
@@ -412,17 +414,17 @@ def test_init_loss_is_the_l1_sum_per_box():
     field = field_of(centres, np.array([[1.9, 1.5, 4.3], [1.7, 1.4, 3.9]]), np.zeros(2), velocities=vel,
                      dynamic=np.array([0.0, 1.0]))
     dec = field.decode()
-    b = field.numpy_boxes()
+    b = field.boxes()
     c_init = centres + np.array([[0.5, -0.25, 1.0], [0.0, 0.125, -2.0]])
     v_init = np.array([[1.0, 1.0, 1.0], [0.5, 0.0, -0.5]])
     mask = np.array([0.0, 1.0])
     got = values(losses.init_loss(dec, c_init, v_init, mask))[0]
     # by hand: centre L1 1.75 + 2.125, velocity L1 of box 1 only: 0.1 + 0 + 0.1
     assert got == pytest.approx((1.75 + 2.125 + 0.2) / 2, abs=1e-4)
-    expected = (np.abs(b["centres"] - c_init).sum() + (mask[:, None] * np.abs(b["velocities"] - v_init)).sum()) / 2
+    expected = (np.abs(b["centre"] - c_init).sum() + (mask[:, None] * np.abs(b["velocity"] - v_init)).sum()) / 2
     assert got == pytest.approx(expected, rel=1e-6)
     got = values(losses.init_loss(dec, c_init, None, None))[0]
-    assert got == pytest.approx(np.abs(b["centres"] - c_init).sum() / 2, rel=1e-6)
+    assert got == pytest.approx(np.abs(b["centre"] - c_init).sum() / 2, rel=1e-6)
     # per-box weights (static 0.1, dynamic 20): by hand 0.1 * 1.75 + 20 * (2.125 + 0.2), / 2
     got = values(losses.init_loss(dec, c_init, v_init, mask, np.array([0.1, 20.0])))[0]
     assert got == pytest.approx((0.1 * 1.75 + 20.0 * (2.125 + 0.2)) / 2, abs=1e-3)
@@ -432,9 +434,9 @@ def test_shape_prior_is_size_l1_plus_yaw_sin_squared_per_box():
     sizes = np.array([[1.9, 1.5, 4.3], [1.7, 1.4, 3.9]])
     field = field_of(np.array([[0.5, 0.2, 10.0], [-3.0, 0.4, 16.0]]), sizes, np.array([0.3, -1.0]))
     dec = field.decode()
-    b = field.numpy_boxes()
-    size_init = b["sizes"] + np.array([[0.5, -0.25, 1.0], [0.0, 0.125, -0.5]])
-    yaw_init = b["yaws"] + np.array([np.pi / 6, np.pi])  # 30 degrees; reversed (free)
+    b = field.boxes()
+    size_init = b["size"] + np.array([[0.5, -0.25, 1.0], [0.0, 0.125, -0.5]])
+    yaw_init = b["yaw"] + np.array([np.pi / 6, np.pi])  # 30 degrees; reversed (free)
     got = values(losses.shape_prior_loss(dec, size_init, yaw_init, 2.0, 3.0))[0]
     # by hand: size L1 1.75 + 0.625, sin^2(30 deg) = 0.25, sin^2(180 deg) = 0
     assert got == pytest.approx((2.0 * (1.75 + 0.625) + 3.0 * 0.25) / 2, abs=1e-4)
@@ -443,16 +445,16 @@ def test_shape_prior_is_size_l1_plus_yaw_sin_squared_per_box():
     # per-box weights (parked box 0, moving box 1 without a prior): by hand (2 * 1.75 + 3 * 0.25) / 2
     got = values(losses.shape_prior_loss(dec, size_init, yaw_init, np.array([2.0, 0.0]), np.array([3.0, 0.0])))[0]
     assert got == pytest.approx((2.0 * 1.75 + 3.0 * 0.25) / 2, abs=1e-4)
-    assert values(losses.shape_prior_loss(dec, b["sizes"], b["yaws"], 2.0, 3.0))[0] == pytest.approx(0.0, abs=1e-6)
+    assert values(losses.shape_prior_loss(dec, b["size"], b["yaw"], 2.0, 3.0))[0] == pytest.approx(0.0, abs=1e-6)
 
 
 def test_shape_prior_gradients_match_finite_differences():
     field = field_of(np.array([[0.5, 0.2, 10.0], [-3.0, 0.4, 16.0]]), np.array([[1.9, 1.5, 4.3], [1.7, 1.4, 3.9]]),
                      np.array([0.3, -1.0]))
-    b = field.numpy_boxes()
-    size_init = b["sizes"] + np.array([[0.3, -0.2, 0.5], [-0.1, 0.15, -0.4]])  # no coordinate at its kink
-    yaw_init = b["yaws"] + np.array([0.4, -2.5])
-    keys = ("box_dims", "box_yaw")
+    b = field.boxes()
+    size_init = b["size"] + np.array([[0.3, -0.2, 0.5], [-0.1, 0.15, -0.4]])  # no coordinate at its kink
+    yaw_init = b["yaw"] + np.array([0.4, -2.5])
+    keys = ("size", "yaw")
     ad, fd = ad_and_central_differences(
         field, keys, lambda dec: losses.shape_prior_loss(dec, size_init, yaw_init, 2.0, 3.0),
         {k: 1e-3 for k in keys})
@@ -647,10 +649,10 @@ def spied_run(monkeypatch, obs, boxes, cfg) -> Spied:
     adams, adam_keys, rates = [], [], {}
     real_adam = BoxOptimiser._adam
 
-    def recording_adam(self, keys, lr):
-        opt = real_adam(self, keys, lr)
+    def recording_adam(self, params, lr):
+        opt = real_adam(self, params, lr)
         adams.append(opt)
-        adam_keys.append(list(keys))
+        adam_keys.append(list(params))
         return opt
 
     monkeypatch.setattr(BoxOptimiser, "_adam", recording_adam)
@@ -664,7 +666,7 @@ def spied_run(monkeypatch, obs, boxes, cfg) -> Spied:
 
     monkeypatch.setattr(mi.ad.Adam, "set_learning_rate", recording_set)
     opt = BoxOptimiser(obs, boxes, cfg)
-    initial = opt.integrator.field.numpy_boxes()
+    initial = opt.integrator.boxes()
 
     def progress(step, loss):
         steps_done[0] = step + 1
@@ -725,17 +727,17 @@ def test_shape_prior_enters_the_init_term_with_the_initial_boxes(scene):
 
 
 def test_no_dynamic_instance_no_velocity(static_run, residual_run):
-    vel_key = static_run.optimiser.vel_key
-    assert not any(vel_key in keys for keys in static_run.adam_keys)
+    vel_key = "vsrd.velocity"
+    assert not any(VELOCITY_LATENT in keys for keys in static_run.adam_keys)
     assert np.all(values(static_run.optimiser.params[vel_key]) == 0.0)
     assert all(np.all(b.velocity == 0) and not b.dynamic for b in static_run.result.boxes)
     # control: with moving cars there is a velocity optimiser; their velocities move, the
     # static boxes' entries stay exactly 0
-    assert sum(vel_key in keys for keys in residual_run.adam_keys) == 1
+    assert sum(VELOCITY_LATENT in keys for keys in residual_run.adam_keys) == 1
     dynamic = residual_run.optimiser.dynamic
     assert dynamic.sum() == 2
     after = values(residual_run.optimiser.params[vel_key]).reshape(-1, 3)
-    before = residual_run.initial["velocities"]
+    before = residual_run.initial["velocity"]
     assert np.all(np.any(after[dynamic] != before[dynamic], axis=1))
     assert np.all(after[~dynamic] == 0.0) and np.all(before[~dynamic] == 0.0)
 
@@ -776,7 +778,7 @@ def test_rays_outside_every_box_reach_are_not_traced():
     centres = np.array([[-2.0, 0.5, 12.0], [3.0, 0.5, 20.0]])
     p = mi.Properties()
     sizes = np.array([[1.8, 1.5, 4.2], [2.0, 1.6, 4.5]])
-    for k, v in instance_properties(centres, sizes, np.array([0.2, -0.5])).items():
+    for k, v in box_properties(centres, sizes, np.array([0.2, -0.5])).items():
         p[k] = v
     it = VSRDSilhouetteIntegrator(p)
     it.set_schedule(10.0, 0.1)

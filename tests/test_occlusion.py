@@ -10,7 +10,8 @@ import vsrd_mi  # noqa: F401  (selects the Mitsuba variant, registers the plugin
 import drjit as dr
 import mitsuba as mi
 
-from vsrd_plugins.sdf import InstanceField, instance_properties
+from vsrd_plugins import box_properties
+from vsrd_plugins.sdf import InstanceField
 from vsrd_mi.data.masks import occluder_map, open_sides
 from vsrd_mi.optimise import losses
 
@@ -68,10 +69,9 @@ def test_open_sides_only_bound_the_projection_from_inside():
     mask box that it overshoots on the left and falls short of on the right, an open left side costs
     nothing and an open right side costs what a closed one does; the DIoU term leaves open lanes."""
     p = mi.Properties()
-    for k, v in instance_properties(np.array([[0.5, 0.2, 10.0]]), np.array([[2.0, 1.6, 4.0]]),
-                                    np.array([0.0])).items():
+    for k, v in box_properties(np.array([[0.5, 0.2, 10.0]]), np.array([[2.0, 1.6, 4.0]]), np.array([0.0])).items():
         p[k] = v
-    dec = InstanceField(p).decode()
+    dec = InstanceField(p, "test").decode()
     pred = np.array([288.75, 202.5, 413.75, 302.5])
     mask = np.array([295.0, 202.5, 420.0, 302.5])  # left: pred 6.25 px outside; right: 6.25 px short
     beta, w_huber, w_diou = 1.0, 1.0, 0.1

@@ -19,14 +19,15 @@ import vsrd_mi  # noqa: F401  (selects the Mitsuba variant, registers the plugin
 import drjit as dr
 import mitsuba as mi
 
-from vsrd_plugins.sdf import BoxRanges, instance_properties
+from vsrd_plugins import box_properties
 from vsrd_mi.geometry.boxes import Box3D
 from vsrd_mi.geometry.iou3d import iou3d
 from vsrd_mi.optimise.losses import binary_cross_entropy, mean, to_float
+from vsrd_mi.optimise.parameters import BOX_LATENTS, BoxLatents, BoxRanges
 from vsrd_mi.scene.sensors import perspective_sensor
 
 INTEGRATOR = "vsrd"
-BOX_KEYS = (f"{INTEGRATOR}.box_dims", f"{INTEGRATOR}.box_centre", f"{INTEGRATOR}.box_yaw")
+BOX_KEYS = BOX_LATENTS  # the optimised latents (box_dims, box_centre, box_yaw), decoded into the boxes
 IOU_MIN = 0.9
 
 TRUTH = Box3D(centre=np.array([0.4, 0.3, 14.0]), size=np.array([1.8, 1.55, 4.3]), yaw=0.4)
@@ -84,7 +85,7 @@ def scene_description(box: Box3D, rig: Rig) -> dict:
     desc = {"type": "scene",
             "integrator": {"type": "vsrd_silhouette", "id": INTEGRATOR, "sampling": "adaptive",
                            "residual": False,
-                           **instance_properties(box.centre[None], box.size[None], np.array([box.yaw]))}}
+                           **box_properties(box.centre[None], box.size[None], np.array([box.yaw]))}}
     for i in range(rig.views):
         a = 2.0 * np.pi * i / rig.views
         eye = box.centre + np.array([rig.radius * np.sin(a), -rig.height, rig.radius * np.cos(a)])
@@ -106,16 +107,16 @@ def sensor_rays(scene: mi.Scene, rig: Rig) -> tuple[mi.Point3f, mi.Vector3f, mi.
     return (mi.Point3f(*[to_float(c) for c in o]), mi.Vector3f(*[to_float(c) for c in d]), to_float(t))
 
 
-def raw_box(box: Box3D, ranges: BoxRanges) -> dict[str, mi.Float]:
-    """Raw (encoded) parameters of ``box`` under the integrator's decoding ranges."""
-    dims, centre = ranges.encode(box.centre[None], box.size[None])
-    return {f"{INTEGRATOR}.box_dims": to_float(dims), f"{INTEGRATOR}.box_centre": to_float(centre),
-            f"{INTEGRATOR}.box_yaw": to_float([np.cos(box.yaw), np.sin(box.yaw)])}
+def write_box(params: mi.SceneParameters, latents: BoxLatents, values: dict) -> None:
+    """Decode the latent ``values`` into the integrator's box parameters."""
+    for key, value in latents.decode(values).items():
+        params[f"{INTEGRATOR}.{key}"] = value
+    params.update()
 
 
 def current_box(scene: mi.Scene) -> Box3D:
-    b = scene.integrator().field.numpy_boxes()
-    return Box3D(b["centres"][0], b["sizes"][0], float(b["yaws"][0]))
+    b = scene.integrator().boxes()
+    return Box3D(b["centre"][0], b["size"][0], float(b["yaw"][0]))
 
 
 def inv_sharpness(fit: Fit, step: int) -> float:
@@ -138,13 +139,13 @@ def test_perturbed_box_is_recovered():
     assert 0.05 < coverage < 0.6, coverage  # the box is in view and not filling the images
 
     start = Box3D(TRUTH.centre + CENTRE_OFFSET, TRUTH.size * SIZE_SCALE, TRUTH.yaw + YAW_OFFSET)
-    for k, v in raw_box(start, integrator.field.ranges).items():
-        params[k] = v
-    params.update()
+    latents = BoxLatents(BoxRanges(), 1)
+    initial = latents.initial(start.centre[None], start.size[None], np.array([start.yaw]), np.zeros((1, 3)))
+    write_box(params, latents, initial)
     iou_start = iou3d(current_box(scene), TRUTH)
     assert iou_start < 0.6, iou_start  # the perturbation is substantial
 
-    opt = mi.ad.Adam(lr=fit.lr_dims, params={k: params[k] for k in BOX_KEYS})
+    opt = mi.ad.Adam(lr=fit.lr_dims, params={k: initial[k] for k in BOX_KEYS})
     base_lr = {BOX_KEYS[0]: fit.lr_dims, BOX_KEYS[1]: fit.lr_centre, BOX_KEYS[2]: fit.lr_yaw}
     losses = []
     for step in range(fit.steps):
@@ -152,13 +153,13 @@ def test_perturbed_box_is_recovered():
         integrator.set_schedule(s, 1.0 / s)
         decay = fit.lr_decay ** (step / fit.steps)
         opt.set_learning_rate({k: lr * decay for k, lr in base_lr.items()})
-        params.update(opt)
+        write_box(params, latents, {k: opt[k] for k in BOX_KEYS})
         label = integrator.render_rays(*rays)[0]
         loss = mean(binary_cross_entropy(label, target, fit.bce_eps))
         dr.backward(loss)
         opt.step()
         losses.append(float(loss[0]))
-    params.update(opt)
+    write_box(params, latents, {k: opt[k] for k in BOX_KEYS})
 
     final = current_box(scene)
     iou = iou3d(final, TRUTH)

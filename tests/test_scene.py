@@ -160,9 +160,11 @@ def test_scene_dict_xml_round_trip(tmp_path):
             assert np.allclose(o, o_ref[0], atol=1e-5) and np.allclose(d, d_ref[0], atol=2e-6)
             assert time == obs.dt[i]
     p_dict, p_file = mi.traverse(from_dict.integrator()), mi.traverse(from_file.integrator())
-    for key in ("box_dims", "box_centre", "box_yaw", "box_velocity", "box_dynamic"):
+    for key in ("centre", "size", "yaw", "velocity", "dynamic"):
         assert np.allclose(np.array(p_dict[key]), np.array(p_file[key]), atol=1e-6), key
-    assert np.array_equal(np.array(p_dict["box_dynamic"]), [0.0, 1.0])
+    assert np.array_equal(np.array(p_dict["dynamic"]), [0.0, 1.0])
+    np.testing.assert_allclose(np.array(p_dict["size"]), [1.8, 1.5, 4.3, 1.7, 1.4, 4.0], rtol=1e-6)
+    np.testing.assert_allclose(np.array(p_dict["yaw"]), [0.4, -0.2], rtol=1e-6)
 
 
 def test_load_scene_and_cli(tmp_path):

@@ -1,4 +1,4 @@
-"""Instance SDF model (plugins/sdf.py) against independent NumPy references."""
+"""Instance SDF model (vsrd_plugins.sdf) against independent NumPy references."""
 
 from __future__ import annotations
 
@@ -9,9 +9,9 @@ import vsrd_mi  # noqa: F401  (selects the Mitsuba variant, registers the plugin
 import drjit as dr
 import mitsuba as mi
 
-from vsrd_plugins.sdf import (BoxRanges, InstanceField, ResidualConfig, box_ray_kinks, box_sdf_local,
-                              box_sdf_local_grad, box_sdf_ray_local, instance_properties, ray_box_interval,
-                              sigmoid, softplus)
+from vsrd_plugins import box_properties
+from vsrd_plugins.sdf import (InstanceField, ResidualConfig, box_ray_kinks, box_sdf_local, box_sdf_local_grad,
+                              box_sdf_ray_local, ray_box_interval, sigmoid, softplus)
 
 
 def np_box_sdf(p: np.ndarray, half: np.ndarray) -> np.ndarray:
@@ -32,6 +32,11 @@ def props_of(d: dict) -> mi.Properties:
     for k, v in d.items():
         p[k] = v
     return p
+
+
+def make_field(centre, size, yaw, velocity=None, dynamic=None, **extra) -> InstanceField:
+    """An instance field of the given boxes (``extra``: further properties, e.g. ``residual``)."""
+    return InstanceField(props_of({**box_properties(centre, size, yaw, velocity, dynamic), **extra}), "test")
 
 
 def vec(a: np.ndarray) -> mi.Vector3f:
@@ -208,8 +213,7 @@ def lane_setup(rng, n_inst: int, n_lanes: int, residual: bool):
     centres, sizes, yaws = random_boxes(rng, n_inst)
     vel = rng.normal(size=(n_inst, 3))
     dyn = (np.arange(n_inst) % 2).astype(float)
-    props = {**instance_properties(centres, sizes, yaws, vel, dyn), "residual": residual}
-    field = InstanceField(props_of(props))
+    field = make_field(centres, sizes, yaws, vel, dyn, residual=residual)
     # runs of lanes per instance (as the sampler lays them out) with random run lengths
     runs = rng.integers(1, 20, n_lanes)
     inst = np.repeat(rng.integers(0, n_inst, n_lanes), runs)[:n_lanes]
@@ -232,7 +236,7 @@ def test_lane_sdfs_closed_form_gradient_matches_ad(residual, kinks):
     field, p, t, inst = lane_setup(rng, 5, 3001, residual)
     reach, grad_reach = 0.5, 0.3
     w_np = rng.normal(size=3001).astype(np.float32)
-    keys = ("box_dims", "box_centre", "box_yaw", "box_velocity", "box_dynamic")
+    keys = ("centre", "size", "yaw", "velocity", "dynamic")
 
     def run(fn, mode):
         for k in keys:
@@ -269,7 +273,7 @@ def test_lane_sdfs_closed_form_gradient_matches_ad(residual, kinks):
     def plain(dec, weights):
         # far lanes (box SDF beyond the reach, where the residual cannot bring it back) keep
         # the detached box SDF alone
-        f = field._lane_sdfs_ad(dec, p, t, inst, weights, reach)
+        f = field.lane_sdfs_ad(dec, p, t, inst, weights, reach)
         with dr.suspend_grad():
             box = InstanceField.view_lanes(dec, inst, t)
             f_box = box_sdf_local(box.to_local(p), box.half)
@@ -315,43 +319,30 @@ def random_boxes(rng, n):
     return centres, sizes, yaws
 
 
-def test_encode_decode_round_trip():
+def test_boxes_round_trip_in_physical_units():
+    """The box properties come back from :meth:`InstanceField.boxes` as given (float32), and
+    decode to half extents, the yaw's cosine and sine and the velocity, each box's own."""
     rng = np.random.default_rng(2)
     centres, sizes, yaws = random_boxes(rng, 7)
     vel = rng.normal(size=(7, 3))
     dyn = (rng.uniform(size=7) < 0.5).astype(float)
-    field = InstanceField(props_of(instance_properties(centres, sizes, yaws, vel, dyn)))
-    raw_dims, raw_centre = BoxRanges().encode(centres, sizes)
-    np.testing.assert_allclose(np.array(field.params["box_dims"]), raw_dims, rtol=1e-6, atol=1e-6)
-    out = field.numpy_boxes()
-    np.testing.assert_allclose(out["centres"], centres, atol=2e-4)
-    np.testing.assert_allclose(out["sizes"], sizes, atol=2e-5)
-    np.testing.assert_allclose(np.angle(np.exp(1j * (out["yaws"] - yaws))), 0.0, atol=1e-6)
-    np.testing.assert_allclose(out["velocities"], vel, atol=1e-6)
+    field = make_field(centres, sizes, yaws, vel, dyn)
+    out = field.boxes()
+    np.testing.assert_allclose(out["centre"], centres, rtol=1e-6)
+    np.testing.assert_allclose(out["size"], sizes, rtol=1e-6)
+    np.testing.assert_allclose(out["yaw"], yaws, rtol=1e-6)
+    np.testing.assert_allclose(out["velocity"], vel, rtol=1e-6)
     np.testing.assert_array_equal(out["dynamic"], dyn)
-
-
-def test_zero_yaw_vector_is_finite():
-    field = InstanceField(props_of(instance_properties([[0, 0, 10]], [[1.8, 1.5, 4.2]], [0.3])))
-    field.params["box_yaw"] = mi.Float(0.0, 0.0)
-    for k in ("box_dims", "box_centre", "box_yaw"):
-        dr.enable_grad(field.params[k])
     dec = field.decode()
-    pts = mi.Point3f(np.array([[0.5, 0.0, 10.0], [3.0, 1.0, 14.0]], np.float32).T)
-    f = field.instance_sdfs(dec, pts, mi.Float(0.0, 0.0))[0]
-    dr.backward(dr.sum(f))
-    assert np.all(np.isfinite(np.array(f)))
-    for k in ("box_dims", "box_centre", "box_yaw"):
-        assert np.all(np.isfinite(np.array(dr.grad(field.params[k])))), k
-    # a zero yaw vector decodes to yaw 0
-    assert field.numpy_boxes()["yaws"][0] == 0.0
+    np.testing.assert_allclose(np.stack([np.array(h) for h in dec.half], 1), 0.5 * sizes, rtol=1e-6)
+    np.testing.assert_allclose(np.array(dec.cos), np.cos(yaws), atol=1e-6)
+    np.testing.assert_allclose(np.array(dec.sin), np.sin(yaws), atol=1e-6)
 
 
 def test_residual_bounded_and_differentiable():
     rng = np.random.default_rng(3)
     centres, sizes, yaws = random_boxes(rng, 2)
-    props = {**instance_properties(centres, sizes, yaws), "residual": True}
-    field = InstanceField(props_of(props))
+    field = make_field(centres, sizes, yaws, residual=True)
     rdf = field.residual
     for v in rdf.params.values():
         dr.enable_grad(v)
@@ -374,8 +365,8 @@ def test_residual_bounded_and_differentiable():
 
 def test_residual_added_only_near_the_box():
     centres, sizes, yaws = np.array([[0.0, 0.0, 10.0]]), np.array([[2.0, 1.5, 4.0]]), np.array([0.0])
-    field = InstanceField(props_of({**instance_properties(centres, sizes, yaws), "residual": True}))
-    plain = InstanceField(props_of(instance_properties(centres, sizes, yaws)))
+    field = make_field(centres, sizes, yaws, residual=True)
+    plain = make_field(centres, sizes, yaws)
     p = np.array([[0.0, 0.0, 10.0], [0.5, 0.2, 11.0], [30.0, 0.0, 10.0]], np.float32)
     t = mi.Float(np.zeros(3, np.float32))
     w = field.residual_weights()
@@ -426,7 +417,7 @@ def test_batched_residual_matches_numpy_per_instance():
     """Groups of different sizes (padded to one bucket) give each instance its own MLP."""
     rng = np.random.default_rng(11)
     centres, sizes, yaws = random_boxes(rng, 3)
-    field = InstanceField(props_of({**instance_properties(centres, sizes, yaws), "residual": True}))
+    field = make_field(centres, sizes, yaws, residual=True)
     rdf = field.residual
     for key in rdf.params:  # non-trivial weights so instances differ visibly
         rdf.params[key] = mi.Float(np.array(rdf.params[key]) * 3.0)
@@ -440,7 +431,7 @@ def test_batched_residual_matches_numpy_per_instance():
 
 
 def test_bucket_width():
-    from vsrd_plugins.sdf import MIN_BUCKET, bucket_width
+    from vsrd_plugins.sdf.mlp import MIN_BUCKET, bucket_width
     assert bucket_width(1) == MIN_BUCKET
     assert bucket_width(MIN_BUCKET + 1) == 2 * MIN_BUCKET
     assert bucket_width(4096) == 4096 and bucket_width(4097) == 8192
@@ -455,7 +446,7 @@ def test_residual_fused_forward_matches_tensor_mode():
     weights = field.generate_weights()
     rng = np.random.default_rng(5)
     points = mi.Vector3f(*[mi.Float(rng.uniform(-3.0, 3.0, 777).astype(np.float32)) for _ in range(3)])
-    tensor = np.array(field._evaluate_padded(weights, 1, points))
+    tensor = np.array(field.evaluate_tensor(weights, 1, points))
     with dr.suspend_grad():
         fused = np.array(field.evaluate_grouped(weights, [1], [points])[0])
     assert tensor.min() > 0.0 and np.ptp(tensor) > 1e-3  # a field that varies

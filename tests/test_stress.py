@@ -4,10 +4,10 @@ Every hypothesis example is one scene of :data:`N_INST` boxes and :data:`CAMERAS
 :data:`RAYS_PER_CAMERA` rays each; a camera with its rays is one *case*, and the rays of all
 cases of an example go through the integrator in one launch (fixed shapes: the kernels compile
 once and thousands of cases stay cheap). The examples cover sharpness ``s`` up to 1e4, cameras
-inside boxes, rays in a face plane, along an edge and through a corner (grazing), box sizes and
-centres at the decoding bounds (raw parameters up to +-1e4), zero / tiny / large yaw vectors,
-moving boxes at large frame offsets, boxes at 100 m, rays aimed away from every box and an
-instance that no ray comes near. Checked: labels finite, in [0, 1], summing with the background
+inside boxes, rays in a face plane, along an edge and through a corner (grazing), boxes from 1 cm
+to 20 m, centres at the edges of the optimiser's ranges, yaws of 0, 1e-9 and far outside
+(-pi, pi], moving boxes at large frame offsets, boxes at 100 m, rays aimed away from every box
+and an instance that no ray comes near. Checked: labels finite, in [0, 1], summing with the background
 to 1, and finite gradients of a random-weighted loss w.r.t. every box parameter and, with the
 residual on, every residual parameter; for ``sdf_tracer`` finite, consistent outputs.
 
@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import json
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import pytest
@@ -36,10 +36,11 @@ import vsrd_mi  # noqa: F401  (selects the Mitsuba variant, registers the plugin
 import drjit as dr
 import mitsuba as mi
 
-from vsrd_plugins.sdf import BoxRanges, instance_properties
+from vsrd_plugins import box_properties
 from vsrd_plugins.silhouette import VSRDSilhouetteIntegrator
 from vsrd_plugins.tracer import SDFTracerIntegrator
-from vsrd_mi.bench.integrator import new_kernels
+from vsrd_mi.bench.measure import new_kernels
+from vsrd_mi.bench.scenes import BOX_KEYS
 from vsrd_mi.optimise.losses import to_float
 
 #: Boxes per scene, cameras (cases) per example, rays per camera: fixed, so kernels compile once.
@@ -56,14 +57,19 @@ EXAMPLES_ENV = "VSRD_STRESS_EXAMPLES"
 #: Share of the examples per test (by cost: a dense or residual launch costs more).
 SHARES = {"adaptive": 0.5, "adaptive_residual": 0.15, "dense": 0.15, "tracer": 0.2}
 
-BOX_KEYS = ("box_dims", "box_centre", "box_yaw", "box_velocity")
 #: Label range / partition-of-unity tolerance (float32 sums of a few hundred weights).
 LABEL_TOL = 1e-5
-#: Raw box parameters at and beyond the decoding bounds (sigmoid saturates to exactly 0 or 1).
-RAW_EXTREMES = (13.8, 30.0, 100.0, 1e4)
-#: Yaw-vector scales: zero, below the decoder's 1e-8 norm guard, just above it, large.
-YAW_SCALES = (0.0, 1e-9, 3e-8, 1e3)
-#: Where an instance that no ray may approach is parked (static, inside the decoding range).
+#: Box sizes (m) of the small and the large extremes: far below and above a car's, up to below a
+#: sample spacing and around the camera.
+SMALL_SIZES = (0.01, 0.05, 0.2, 1.0)
+LARGE_SIZES = (5.4, 7.2, 12.0, 20.0)
+#: Box sizes (m) of an ordinary box: the optimiser's latent range (vsrd_mi.optimise.parameters).
+SIZE_RANGE = ((1.1, 1.0, 2.2), (2.7, 3.3, 7.2))
+#: Centre coordinates (m) at the edges of the optimiser's range, per axis y and z.
+CENTRE_EDGES = {1: (-5.0, 8.0), 2: (-5.0, 110.0)}
+#: Yaws (rad): 0, tiny, and far outside (-pi, pi].
+YAW_EXTREMES = (0.0, 1e-9, 3.0 * np.pi, 1e3)
+#: Where an instance that no ray may approach is parked (static).
 HIDDEN_CENTRE = (-55.0, 7.0, -3.0)
 CAMERA_KINDS = ("outside", "inside", "face", "edge", "corner", "away", "random")
 
@@ -104,10 +110,10 @@ def run_stress(test: str, full: bool, check, integrator) -> None:
 class InstanceKnobs:
     """How one box is drawn: size / centre / yaw modes (see :func:`instance_knobs`)."""
 
-    dims: str  # random | lo | hi | mixed (raw dims at +-raw_extreme)
-    raw_extreme: float  # one of RAW_EXTREMES
-    centre: str  # near | far (z 90-110 m) | bound (raw centre y or z at +-raw_extreme)
-    yaw_scale: float | None  # None: a unit vector; else one of YAW_SCALES
+    dims: str  # random | lo | hi | mixed (sizes of SMALL_SIZES / LARGE_SIZES, per axis for mixed)
+    extreme: int  # index into SMALL_SIZES and LARGE_SIZES
+    centre: str  # near | far (z 90-110 m) | bound (y or z at an edge of CENTRE_EDGES)
+    yaw: float | None  # None: a random angle; else one of YAW_EXTREMES
     dynamic: bool
 
 
@@ -132,9 +138,9 @@ def log_uniform(lo: float, hi: float, ends: tuple[float, ...]):
 instance_knobs = st.builds(
     InstanceKnobs,
     dims=st.sampled_from(["random", "random", "lo", "hi", "mixed"]),
-    raw_extreme=st.sampled_from(RAW_EXTREMES),
+    extreme=st.integers(0, len(SMALL_SIZES) - 1),
     centre=st.sampled_from(["near", "near", "far", "bound"]),
-    yaw_scale=st.one_of(st.none(), st.sampled_from(YAW_SCALES)),
+    yaw=st.one_of(st.none(), st.sampled_from(YAW_EXTREMES)),
     dynamic=st.booleans())
 
 scene_knobs = st.builds(
@@ -152,47 +158,34 @@ def rot_y(c: float, s: float) -> np.ndarray:
     return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
 
 
-def raw_parameters(k: SceneKnobs, rng: np.random.Generator, ranges: BoxRanges) -> dict[str, np.ndarray]:
-    """Raw (undecoded) box parameters of one example."""
+def box_parameters(k: SceneKnobs, rng: np.random.Generator) -> dict[str, np.ndarray]:
+    """The box parameters of one example (flat, as ``mi.traverse`` lists them)."""
     centres, sizes = np.zeros((N_INST, 3)), np.zeros((N_INST, 3))
-    lo, hi = 2.0 * np.array(ranges.half_lo), 2.0 * np.array(ranges.half_hi)
+    yaw, velocity, dynamic = np.zeros(N_INST), np.zeros((N_INST, 3)), np.zeros(N_INST)
     for i, kn in enumerate(k.instances):
         centres[i] = [rng.uniform(-25, 25), rng.uniform(-1.5, 3.0),
                       rng.uniform(90, 110) if kn.centre == "far" else rng.uniform(2.0, 40.0)]
-        sizes[i] = rng.uniform(lo, hi)
-    if k.hidden:
-        centres[-1] = HIDDEN_CENTRE
-    raw_dims, raw_centre = ranges.encode(centres, sizes)
-    raw_dims, raw_centre = raw_dims.reshape(N_INST, 3), raw_centre.reshape(N_INST, 3)
-    yaw = np.zeros((N_INST, 2))
-    velocity = np.zeros((N_INST, 3))
-    dynamic = np.zeros(N_INST)
-    for i, kn in enumerate(k.instances):
-        signs = rng.choice([-1.0, 1.0], 3)
-        if kn.dims == "lo":
-            raw_dims[i] = -kn.raw_extreme
-        elif kn.dims == "hi":
-            raw_dims[i] = kn.raw_extreme
-        elif kn.dims == "mixed":
-            raw_dims[i] = signs * kn.raw_extreme
-        if kn.centre == "bound" and not (k.hidden and i == N_INST - 1):
-            axis = rng.integers(1, 3)  # y or z at its bound (x bounds are +-60 m: beside the road)
-            raw_centre[i, axis] = rng.choice([-1.0, 1.0]) * kn.raw_extreme
-        angle = rng.uniform(-np.pi, np.pi)
-        scale = 1.0 if kn.yaw_scale is None else kn.yaw_scale
-        yaw[i] = scale * np.array([np.cos(angle), np.sin(angle)])
-        if kn.dynamic and not (k.hidden and i == N_INST - 1):
+        small, large = SMALL_SIZES[kn.extreme], LARGE_SIZES[kn.extreme]
+        sizes[i] = {"random": rng.uniform(*SIZE_RANGE), "lo": np.full(3, small), "hi": np.full(3, large),
+                    "mixed": np.where(rng.uniform(size=3) < 0.5, small, large)}[kn.dims]
+        if kn.centre == "bound":
+            axis = int(rng.integers(1, 3))  # y or z at an edge (x edges are +-60 m: beside the road)
+            centres[i, axis] = rng.choice(CENTRE_EDGES[axis])
+        yaw[i] = rng.uniform(-np.pi, np.pi) if kn.yaw is None else kn.yaw * rng.choice([-1.0, 1.0])
+        if kn.dynamic:
             dynamic[i] = 1.0
             velocity[i] = rng.normal(0.0, 1.5, 3) * np.array([1.0, 0.2, 1.0])
-    return {"box_dims": raw_dims.ravel(), "box_centre": raw_centre.ravel(), "box_yaw": yaw.ravel(),
-            "box_velocity": velocity.ravel(), "box_dynamic": dynamic}
+    if k.hidden:
+        centres[-1], dynamic[-1], velocity[-1] = HIDDEN_CENTRE, 0.0, 0.0
+    return {"centre": centres.ravel(), "size": sizes.ravel(), "yaw": yaw, "velocity": velocity.ravel(),
+            "dynamic": dynamic}
 
 
 def decoded(field) -> list[dict]:
-    """Decoded boxes (float64) as the integrators see them."""
-    b = field.numpy_boxes()
-    return [{"centre": b["centres"][i], "half": 0.5 * b["sizes"][i], "yaw": b["yaws"][i],
-             "velocity": b["velocities"][i] * b["dynamic"][i]} for i in range(len(b["yaws"]))]
+    """The boxes (float64) as the integrators see them."""
+    b = field.boxes()
+    return [{"centre": b["centre"][i], "half": 0.5 * b["size"][i], "yaw": b["yaw"][i],
+             "velocity": b["velocity"][i] * b["dynamic"][i]} for i in range(len(b["yaw"]))]
 
 
 def camera_rays(kind: str, box: dict, boxes: list[dict], time: float,
@@ -272,7 +265,7 @@ def set_scene(field, k: SceneKnobs, margin: float) -> Rays:
     """Load the example's boxes into ``field`` and draw its rays; ``margin``: how far beyond a
     box an integrator may look (its reach)."""
     rng = np.random.default_rng(k.seed)
-    for key, v in raw_parameters(k, rng, field.ranges).items():
+    for key, v in box_parameters(k, rng).items():
         field.params[key] = to_float(v)
     boxes = decoded(field)
     targets = boxes[:-1] if k.hidden else boxes
@@ -294,8 +287,8 @@ def make_integrator(cls, **props):
     """An integrator with :data:`N_INST` placeholder boxes (replaced by :func:`set_scene`)."""
     p = mi.Properties()
     centres = np.array([[0.0, 0.0, 10.0 + 5 * i] for i in range(N_INST)])
-    for key, v in {**instance_properties(centres, np.tile([1.8, 1.5, 4.2], (N_INST, 1)), np.zeros(N_INST),
-                                         dynamic=np.ones(N_INST)), **props}.items():
+    for key, v in {**box_properties(centres, np.tile([1.8, 1.5, 4.2], (N_INST, 1)), np.zeros(N_INST),
+                                    dynamic=np.ones(N_INST)), **props}.items():
         p[key] = v
     return cls(p)
 
@@ -307,14 +300,13 @@ def make_integrator(cls, **props):
 
 def check_silhouette(it: VSRDSilhouetteIntegrator, k: SceneKnobs) -> Rays:
     it.set_schedule(k.sharpness, k.temperature)
-    margin = it.cfg.reach / k.sharpness + it.field.residual_reach
+    margin = it.settings.reach / k.sharpness + it.field.residual_reach
     rays = set_scene(it.field, k, margin)
     params = {key: it.field.params[key] for key in BOX_KEYS}
     if it.field.use_residual:
         params.update({f"rdf_{key}": v for key, v in it.field.residual.params.items()})
     for key, v in params.items():
         dr.enable_grad(v)
-        it.field.set_param(key, v)
     try:
         labels = it.render_rays(*rays.mitsuba())
         rng = np.random.default_rng(k.seed + 1)
@@ -325,8 +317,11 @@ def check_silhouette(it: VSRDSilhouetteIntegrator, k: SceneKnobs) -> Rays:
         vals = np.stack([np.array(dr.detach(x)) for x in labels])
         grads = {key: np.array(dr.grad(v)) for key, v in params.items()}
     finally:
-        for key, v in params.items():
-            it.field.set_param(key, dr.detach(v))
+        for key in BOX_KEYS:
+            it.field.params[key] = dr.detach(it.field.params[key])
+        if it.field.use_residual:
+            for key, v in it.field.residual.params.items():
+                it.field.residual.params[key] = dr.detach(v)
     where = f"s={k.sharpness:g} tau={k.temperature:g} cameras={k.cameras}"
     assert vals.shape == (N_INST + 1, N_RAYS)
     assert np.all(np.isfinite(vals)), f"non-finite labels ({where})"
@@ -353,7 +348,9 @@ def adaptive_residual():
 
 @pytest.fixture(scope="module")
 def dense():
-    return make_integrator(VSRDSilhouetteIntegrator, sampling="dense", coarse_samples=32, fine_samples=16)
+    it = make_integrator(VSRDSilhouetteIntegrator, sampling="dense")
+    it.settings = replace(it.settings, coarse_samples=32, fine_samples=16)
+    return it
 
 
 @pytest.mark.parametrize("full", PROFILES)
@@ -384,7 +381,7 @@ def inside_box(o: np.ndarray, time: np.ndarray, box: dict, margin: float) -> np.
 
 
 def check_tracer(it: SDFTracerIntegrator, k: SceneKnobs) -> None:
-    margin = it.cfg.start_margin + it.field.residual_reach
+    margin = it.settings.start_margin + it.field.residual_reach
     rays = set_scene(it.field, k, margin)
     out = {key: np.array(v) for key, v in it.trace_rays(*rays.mitsuba()).items()}
     where = f"cameras={k.cameras}"
@@ -394,7 +391,7 @@ def check_tracer(it: SDFTracerIntegrator, k: SceneKnobs) -> None:
         assert np.all(np.isfinite(out[key])), f"non-finite {key} ({where})"
     np.testing.assert_array_equal(hit, inst >= 0, err_msg=where)
     assert np.all((inst >= -1) & (inst < N_INST)), where
-    assert np.all(t[hit] >= it.cfg.near) and np.all(t[hit] <= it.cfg.far), where
+    assert np.all(t[hit] >= it.settings.near) and np.all(t[hit] <= it.settings.far), where
     assert np.all(t[~hit] == 0) and np.all(normal[:, ~hit] == 0), where
     np.testing.assert_allclose(np.linalg.norm(normal[:, hit], axis=0), 1.0, atol=1e-4, err_msg=where)
     # a ray starting inside a box (clear of its faces) hits at t = near; boxes are the surfaces
@@ -403,7 +400,7 @@ def check_tracer(it: SDFTracerIntegrator, k: SceneKnobs) -> None:
     inside = np.zeros(N_RAYS, dtype=bool)
     for box in boxes:
         inside |= inside_box(rays.o, rays.time, box, 1e-3 + it.field.residual_reach)
-    assert np.all(hit[inside]) and np.all(t[inside] == it.cfg.near), where
+    assert np.all(hit[inside]) and np.all(t[inside] == it.settings.near), where
     if rays.hidden:
         assert not np.any(inst == N_INST - 1), where
     event(f"hidden instance: {rays.hidden}, rays inside a box: {int(inside.sum() > 0)}")
@@ -439,10 +436,10 @@ def test_fresh_rays_do_not_recompile(residual):
     holds for the two instances' points in the AD graph: with ``(44, 46)`` both had 159 after
     the chord grid came in, and their backward scatter-adds fused).
     """
-    scene = {"centres": np.array([[-6.0, 0.5, 15.0], [6.0, 0.5, 15.0]]),
-             "sizes": np.array([[1.8, 1.5, 4.2], [2.0, 1.6, 4.5]]), "yaws": np.array([0.3, -0.4])}
+    scene = {"centre": np.array([[-6.0, 0.5, 15.0], [6.0, 0.5, 15.0]]),
+             "size": np.array([[1.8, 1.5, 4.2], [2.0, 1.6, 4.5]]), "yaw": np.array([0.3, -0.4])}
     p = mi.Properties()
-    for key, v in {**instance_properties(**scene), "residual": residual}.items():
+    for key, v in {**box_properties(**scene), "residual": residual}.items():
         p[key] = v
     it = VSRDSilhouetteIntegrator(p)
     it.set_schedule(10.0, 0.1)
@@ -452,21 +449,21 @@ def test_fresh_rays_do_not_recompile(residual):
     try:
         misses, seen = [], set()
         for a, b in counts:
-            aims = [scene["centres"][0] + rng.uniform(-0.8, 0.8, (a, 3)),
-                    scene["centres"][1] + rng.uniform(-0.8, 0.8, (b, 3)),
+            aims = [scene["centre"][0] + rng.uniform(-0.8, 0.8, (a, 3)),
+                    scene["centre"][1] + rng.uniform(-0.8, 0.8, (b, 3)),
                     np.column_stack([rng.uniform(-5, 5, N_RAYS - a - b), np.full(N_RAYS - a - b, -50.0),
                                      rng.uniform(5, 20, N_RAYS - a - b)])]
             d = np.concatenate(aims)
             rays = Rays(np.zeros((N_RAYS, 3)), d / np.linalg.norm(d, axis=1, keepdims=True), np.zeros(N_RAYS), False)
             dr.kernel_history()  # clear
-            centre = it.field.params["box_centre"]
+            centre = it.field.params["centre"]
             dr.enable_grad(centre)
             labels = it.render_rays(*rays.mitsuba())
             dr.backward(dr.sum(labels[0] * labels[0] + labels[1]))
             grad = dr.grad(centre)
             dr.eval(grad)
             misses.append(new_kernels(seen))
-            it.field.params["box_centre"] = dr.detach(centre)
+            it.field.params["centre"] = dr.detach(centre)
             assert it.last_stats["rays"] == a + b
             assert np.all(np.isfinite(np.array(grad)))
     finally:
@@ -539,7 +536,7 @@ def test_non_finite_gradient_in_last_step_emits_no_box(monkeypatch, target_obs):
     with pytest.raises(OptimisationError, match="non-finite box parameters"):
         opt.run()
     assert calls[0] == cfg.steps
-    assert not np.all(np.isfinite(opt.integrator.field.numpy_boxes()["centres"]))
+    assert not np.all(np.isfinite(opt.integrator.boxes()["centre"]))
 
 
 def test_batch_records_non_finite_target_as_failed(monkeypatch, tmp_path):

@@ -342,3 +342,13 @@ def test_synth_suite_cli_writes_and_keeps(tmp_path, capsys):
     assert cli_main(["synth-suite", str(out), "--set", "validation", "--only", "moving_traffic",
                      "--quiet"]) == 0
     assert "kept" in capsys.readouterr().out
+
+
+def test_lamp_faces_are_told_by_their_outward_normals():
+    """Rear lamps go on faces whose outward normal points backwards, whatever the mesh's winding:
+    a face normal pointing into the car is turned round."""
+    from vsrd_mi.synth.render import outward
+
+    normals = np.array([[1.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
+    offsets = np.array([[2.0, 0.1, 0.5], [-2.0, 0.1, 0.5], [0.0, 0.0, 0.0]])  # front, rear, centre
+    np.testing.assert_array_equal(outward(normals, offsets), [[1.0, 0, 0], [-1.0, 0, 0], [0, 0, -1.0]])

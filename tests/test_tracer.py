@@ -9,7 +9,7 @@ import vsrd_mi  # noqa: F401  (sets the variant, registers the plugins)
 import drjit as dr
 import mitsuba as mi
 
-from vsrd_plugins.sdf import instance_properties
+from vsrd_plugins import box_properties
 
 DEPTH_TOL = 1e-4  # m, required depth accuracy
 
@@ -39,10 +39,10 @@ def slab_reference(o, d, time, boxes):
     normal = np.zeros((n, 3))
     gap = np.full(n, np.inf)
     inside = np.zeros(n, dtype=bool)
-    for k in range(len(boxes["centres"])):
-        centre = boxes["centres"][k] + boxes["dynamic"][k] * boxes["velocities"][k] * time[:, None]
-        r = rot_y(boxes["yaws"][k])
-        half = boxes["sizes"][k] / 2.0
+    for k in range(len(boxes["centre"])):
+        centre = boxes["centre"][k] + boxes["dynamic"][k] * boxes["velocity"][k] * time[:, None]
+        r = rot_y(boxes["yaw"][k])
+        half = boxes["size"][k] / 2.0
         ol = (o - centre) @ r  # R^T (o - c), row vectors
         dl = d @ r
         with np.errstate(divide="ignore", invalid="ignore"):
@@ -80,7 +80,7 @@ def random_boxes(rng, n, dynamic_fraction=0.5):
 
 def load_tracer(centres, sizes, yaws, velocities=None, dynamic=None, **extra):
     return mi.load_dict({"type": "sdf_tracer",
-                         **instance_properties(centres, sizes, yaws, velocities, dynamic), **extra})
+                         **box_properties(centres, sizes, yaws, velocities, dynamic), **extra})
 
 
 def rays_at_faces(rng, boxes, n_per_box, time_range, sin_range, offset_range=(0.0, 0.0)):
@@ -90,12 +90,12 @@ def rays_at_faces(rng, boxes, n_per_box, time_range, sin_range, offset_range=(0.
     aim point is pushed this far outwards along the face normal (> 0: a near miss of that face).
     """
     o, d, t = [], [], []
-    for k in range(len(boxes["centres"])):
-        half = boxes["sizes"][k] / 2.0
-        r = rot_y(boxes["yaws"][k])
+    for k in range(len(boxes["centre"])):
+        half = boxes["size"][k] / 2.0
+        r = rot_y(boxes["yaw"][k])
         for _ in range(n_per_box):
             tau = rng.uniform(*time_range)
-            centre = boxes["centres"][k] + boxes["dynamic"][k] * boxes["velocities"][k] * tau
+            centre = boxes["centre"][k] + boxes["dynamic"][k] * boxes["velocity"][k] * tau
             axis = rng.integers(3)
             sgn = rng.choice([-1.0, 1.0])
             nl = np.zeros(3)
@@ -127,7 +127,7 @@ def check_against_reference(integ, o, d, time):
     o = o.astype(np.float32).astype(np.float64)
     d = d.astype(np.float32).astype(np.float64)
     time = time.astype(np.float32).astype(np.float64)
-    boxes = integ.field.numpy_boxes()  # the decoded (single-precision) parameters
+    boxes = integ.boxes()  # the decoded (single-precision) parameters
     boxes = {k: np.asarray(v, dtype=np.float64) for k, v in boxes.items()}
     t_ref, i_ref, n_ref, gap, inside = slab_reference(o, d, time, boxes)
     out = trace(integ, o, d, time)
@@ -161,7 +161,7 @@ def scene_boxes():
     rng = np.random.default_rng(7)
     centres, sizes, yaws, vel, dyn = random_boxes(rng, 5)
     integ = load_tracer(centres, sizes, yaws, vel, dyn)
-    return integ, {k: np.asarray(v, float) for k, v in integ.field.numpy_boxes().items()}
+    return integ, {k: np.asarray(v, float) for k, v in integ.boxes().items()}
 
 
 def test_depth_instance_normal_match_slab_reference(scene_boxes):
@@ -211,11 +211,12 @@ def test_render_with_sensor_aovs_and_traverse():
                    "to_world": mi.ScalarTransform4f().look_at([0, 0, 0], [0, 0, 1], [0, -1, 0]),
                    "film": {"type": "hdrfilm", "width": 24, "height": 16, "rfilter": {"type": "box"}}},
         "integrator": {"type": "sdf_tracer", "id": "tracer",
-                       **instance_properties([[0.0, 0.0, 10.0]], [[2.0, 1.5, 4.0]], [0.0])},
+                       **box_properties([[0.0, 0.0, 10.0]], [[2.0, 1.5, 4.0]], [0.0])},
     })
     params = mi.traverse(scene)
-    for key in ("tracer.box_centre", "tracer.box_dims", "tracer.box_yaw", "tracer.box_velocity"):
+    for key in ("tracer.centre", "tracer.size", "tracer.yaw", "tracer.velocity", "tracer.dynamic"):
         assert key in params
+    assert not any("rdf_" in key for key in params.keys())
     img = np.array(mi.render(scene, spp=1))
     assert img.shape == (16, 24, 8)
     inst, depth, nrm = img[..., 3], img[..., 4], img[..., 5:8]
@@ -226,11 +227,12 @@ def test_render_with_sensor_aovs_and_traverse():
     assert np.all(depth[~hit] == 0) and np.all(img[~hit][:, :3] == 0)
     np.testing.assert_allclose(nrm[hit], [[0, 0, -1]] * int(hit.sum()), atol=1e-6)
     assert np.all(img[hit][:, :3].max(axis=1) > 0)
-    # moving the box through mi.traverse changes the render
-    raw = np.array(params["tracer.box_centre"])
-    params["tracer.box_centre"] = mi.Float(raw + np.array([0.0, 0.0, 0.3], dtype=np.float32))
+    # moving the box through mi.traverse (in metres) changes the render
+    centre = np.array(params["tracer.centre"])
+    params["tracer.centre"] = mi.Float(centre + np.array([0.0, 0.0, 0.3], dtype=np.float32))
     params.update()
-    z_new = float(scene.integrator().field.numpy_boxes()["centres"][0, 2]) - 2.0
+    z_new = float(scene.integrator().boxes()["centre"][0, 2]) - 2.0
+    assert z_new == pytest.approx(8.3, abs=1e-5)
     img2 = np.array(mi.render(scene, spp=1))
     hit2 = img2[..., 3] == 0
     assert z_new > 8.1
@@ -242,7 +244,7 @@ def test_residual_on_no_nan_and_not_nearer_than_box():
     centres, sizes, yaws, vel, dyn = random_boxes(rng, 3)
     box = load_tracer(centres, sizes, yaws, vel, dyn)
     res = load_tracer(centres, sizes, yaws, vel, dyn, residual=True)
-    boxes = {k: np.asarray(v, float) for k, v in box.field.numpy_boxes().items()}
+    boxes = {k: np.asarray(v, float) for k, v in box.boxes().items()}
     o, d, t = rays_at_faces(rng, boxes, 30, (-2.0, 2.0), (0.3, 1.0))
     a, b = trace(box, o, d, t), trace(res, o, d, t)
     for v in b.values():

@@ -14,7 +14,7 @@ from skimage.measure import label as connected_components
 import vsrd_mi  # noqa: F401
 import mitsuba as mi
 
-from vsrd_plugins.sdf import instance_properties
+from vsrd_plugins import box_properties
 from vsrd_mi.batch.tasks import TargetTask
 from vsrd_mi.data.kitti360 import Sequence
 from vsrd_mi.data.observations import load_observations
@@ -100,7 +100,7 @@ def test_bev_draws_each_box_once():
 
 def test_box_only_mesh_fills_its_box():
     box = Box3D(centre=(1.0, 0.5, 12.0), size=(1.8, 1.5, 4.4), yaw=0.6)
-    props = instance_properties(box.centre[None], box.size[None], [box.yaw])
+    props = box_properties(box.centre[None], box.size[None], [box.yaw])
     field = mi.load_dict({"type": "vsrd_silhouette", **props}).field
     mesh, spacing = V.instance_mesh(field, box, 0, (255, 0, 0), V.VisualConfig(mesh_cells=32))
     assert mesh.is_watertight

@@ -1,14 +1,20 @@
-"""vsrd_plugins: Mitsuba 3 integrators for instance-aware SDF silhouette rendering.
+"""vsrd_plugins: Mitsuba 3 integrators for instance-aware box silhouettes, differentiable w.r.t.
+the boxes.
 
-Self-contained: depends only on Mitsuba 3 and Dr.Jit (no vsrd-mi pipeline code), so this folder
-can be copied into another project. Modules:
+Needs only Mitsuba 3, Dr.Jit and NumPy: copy this folder into another project and
+``import vsrd_plugins``. After ``mi.set_variant(...)`` (an ``*_ad_rgb`` variant) call
+:func:`register`; then ``mi.load_dict`` / ``mi.load_file`` know the integrators
 
-* :mod:`vsrd_plugins.sdf` -- instance SDF model (boxes with velocity + hypernetwork residual field).
-* :mod:`vsrd_plugins.silhouette` -- ``vsrd_silhouette``: NeuS instance-aware silhouette integral.
-* :mod:`vsrd_plugins.tracer` -- ``sdf_tracer``: sphere-traced instance id / depth / normal.
+* ``vsrd_silhouette`` (:mod:`vsrd_plugins.silhouette`): soft instance labels (one AOV per box)
+  from a NeuS integral over the boxes' signed distance, for fitting boxes to instance masks
+  with ``mi.traverse`` and an optimiser;
+* ``sdf_tracer`` (:mod:`vsrd_plugins.tracer`): sphere-traced instance id, depth and normal of
+  the same boxes, for inspection.
 
-Call :func:`register` after ``mi.set_variant(...)`` (an ``*_ad_rgb`` variant) to make the
-integrators available to ``mi.load_dict`` / ``mi.load_file``.
+Both read the boxes from the same properties (``centre``, ``size``, ``yaw``, ``velocity``,
+``dynamic``; :func:`box_properties` builds them from lists or NumPy arrays) and list them in
+``mi.traverse`` in physical units. :mod:`vsrd_plugins.sdf` holds the geometry (box SDF, the
+residual field), :mod:`vsrd_plugins.common` the shared numerics and searches.
 """
 
 from __future__ import annotations
@@ -16,29 +22,50 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
+from .properties import PropertyError, box_properties
 
-def register(disable_packet_ops: bool = True, disable_expand: bool = True) -> None:
+__all__ = ["register", "restore_jit_settings", "box_properties", "PropertyError"]
+
+
+def register(jit_settings: bool = True) -> dict[str, object]:
     """Register ``vsrd_silhouette`` and ``sdf_tracer`` for the current Mitsuba variant.
 
-    ``disable_packet_ops`` turns off Dr.Jit's ``JitFlag.PacketOps``: with it on, the LLVM backend
-    specialises kernel loads on the run-time alignment of every input buffer, and the many
-    differently sized arrays these integrators create per call (compacted rays, per-band groups)
-    made 10-20 kernels recompile on *every* optimisation step (~4 s of LLVM time per step,
-    measured with ``dr.kernel_history()``); with it off, 0 recompilations after warm-up.
+    With ``jit_settings`` (the default) this also changes two **process-wide** Dr.Jit settings,
+    for every kernel of the process from then on, and returns their previous values
+    (:func:`restore_jit_settings` puts them back):
 
-    ``disable_expand`` sets Dr.Jit's expand threshold to 0: the LLVM backend otherwise compiles
-    scatter-additions into targets of up to 2^20 elements in ``ReduceMode.Expand``, which bakes
-    the target's size into the kernel. The backward pass of every gather from a per-call sized
-    array (samples of a band group, compacted rays) is such a scatter-addition, so with fresh rays
-    every call (an optimisation step) 3-10 kernels recompiled per call (box-only optimiser step on
-    the bundled scene: 3.7 s, 0.35 s without; forward + backward time otherwise unchanged).
+    * ``dr.JitFlag.PacketOps`` off. With it on, the LLVM backend specialises kernel loads on
+      the run-time alignment of every input buffer, and the many differently sized arrays these
+      integrators create per call (compacted rays, per-band sample groups) made 10-20 kernels
+      compile anew on every optimisation step (about 4 s of LLVM time per step, seen in
+      ``dr.kernel_history()``); with it off, none after the first steps.
+    * ``dr.set_expand_threshold(0)``. The LLVM backend otherwise compiles scatter-additions into
+      targets of up to 2^20 entries in ``ReduceMode.Expand``, which bakes the target's size into
+      the kernel. The backward pass of every gather from a per-call sized array is such a
+      scatter-addition, so with fresh rays every step 3-10 kernels compiled anew per step (a
+      box-only optimisation step of the bundled scene took 3.7 s instead of 0.35 s).
+
+    The backward pass runs where the caller calls ``dr.backward``, outside any call of the
+    integrators, so the settings cannot be scoped to their calls. Pass ``jit_settings=False``
+    to keep the process's settings (expect the recompilations above).
     """
-    if disable_packet_ops:
+    previous = {"PacketOps": dr.flag(dr.JitFlag.PacketOps), "expand_threshold": dr.expand_threshold()}
+    if jit_settings:
         dr.set_flag(dr.JitFlag.PacketOps, False)
-    if disable_expand:
         dr.set_expand_threshold(0)
+        mi.Log(mi.LogLevel.Info, "vsrd_plugins.register(): Dr.Jit PacketOps off and expand threshold 0 for this "
+                                 "process (see its docstring)")
+    # imported here, not at the top: the integrator classes derive from ``mi.ad`` classes,
+    # which exist only once a variant is set (importing vsrd_plugins itself needs none)
     from .silhouette import VSRDSilhouetteIntegrator
     from .tracer import SDFTracerIntegrator
 
     mi.register_integrator("vsrd_silhouette", lambda props: VSRDSilhouetteIntegrator(props))
     mi.register_integrator("sdf_tracer", lambda props: SDFTracerIntegrator(props))
+    return previous
+
+
+def restore_jit_settings(previous: dict[str, object]) -> None:
+    """Put back the Dr.Jit settings :func:`register` returned."""
+    dr.set_flag(dr.JitFlag.PacketOps, bool(previous["PacketOps"]))
+    dr.set_expand_threshold(int(previous["expand_threshold"]))

@@ -1,39 +1,40 @@
-r"""Sphere-traced instance id, depth and normal of the instance SDF scene (``sdf_tracer``).
+r"""Sphere-traced instance id, depth and normal of the boxes (``sdf_tracer``).
 
 .. pluginparameters::
 
- * - num_instances, centres, sizes, yaws, velocities, dynamic
-   - |int|, |string|
-   - The boxes (see :func:`vsrd_plugins.sdf.instance_properties`). Ray time is the frame offset
-     used to move dynamic boxes: ``centre(t) = centre + dynamic * velocity * t``.
+ * - centre, size, yaw, velocity, dynamic
+   - |string| or floats
+   - The boxes, as for ``vsrd_silhouette`` (one row each there): centres and full sizes (3 per
+     box, scene units), yaws (radians), velocities (per unit of ray time) and 0/1 dynamic
+     flags. Ray time moves dynamic boxes: ``centre(t) = centre + velocity * t``.
  * - residual
    - |bool|
-   - Add the hypernetwork residual distance field to every box SDF. (Default: false)
+   - Add the residual distance field to every box SDF. (Default: false)
+ * - residual_seed
+   - |int|
+   - Seed of the residual field's initial weights. (Default: 0)
  * - max_iterations
    - |int|
-   - Sphere-tracing iterations per ray; rays still marching after them are background.
+   - Sphere-tracing iterations per ray, >= 1; rays still marching after them are background.
      (Default: 256)
  * - epsilon
    - |float|
-   - Hit tolerance (m): a ray whose scene SDF drops below it has hit. (Default: 1e-5)
- * - near, far
+   - Hit tolerance (scene units), > 0: a ray whose scene SDF drops below it has hit.
+     (Default: 1e-5)
+ * - near
    - |float|
-   - Tracing range along each (normalised) ray direction. (Default: 0, 200)
- * - start_margin
+   - Start of the tracing range along each (normalised) ray direction, >= 0. (Default: 0)
+ * - far
    - |float|
-   - Enlargement (m) of the boxes whose entry starts the march, see below. (Default: 0.05)
- * - refine_iterations, depth_tolerance
-   - |int|, |float|
-   - Root refinement: at most this many Illinois steps, until the bracket is narrower than
-     ``depth_tolerance`` (m). (Default: 64, 1e-6)
- * - normal_step
-   - |float|
-   - Central finite-difference step (m) of the normals when the residual is on. (Default: 1e-3)
+   - End of the tracing range, > ``near``. (Default: 200)
 
-Every box parameter (``tracer.box_dims``, ...) and the residual field's weights
-(``tracer.rdf_*``) appear in ``mi.traverse(scene)`` when the integrator has ``id="tracer"``;
-they are shared in form with ``vsrd_silhouette`` so an optimised parameter set can be copied
-over. Nothing here is differentiable: the tracer is for inspection (instance maps, depth,
+The internal settings (start margin, root refinement, normal step) are a
+:class:`TracerSettings` on ``integrator.settings``.
+
+Every box parameter (``tracer.centre``, ``tracer.size``, ...) and, with the residual field,
+its weights (``tracer.rdf_*``) appear in ``mi.traverse(scene)`` when the integrator has
+``id="tracer"``, under the same names as ``vsrd_silhouette``'s, so an optimised parameter set
+can be copied over. Nothing here is differentiable: the tracer is for inspection (instance maps, depth,
 normals), not for optimisation.
 
 Algorithm
@@ -89,12 +90,14 @@ Usage
 
 .. code-block:: python
 
-    import vsrd_mi, mitsuba as mi
-    from vsrd_plugins.sdf import instance_properties
+    import mitsuba as mi
+    mi.set_variant("llvm_ad_rgb")
+    import vsrd_plugins
+    vsrd_plugins.register()
     scene = mi.load_dict({'type': 'scene',
         'sensor': {'type': 'perspective', 'film': {'type': 'hdrfilm', 'rfilter': {'type': 'box'}}},
         'integrator': {'type': 'sdf_tracer', 'id': 'tracer',
-                       **instance_properties(centres, sizes, yaws)}})
+                       **vsrd_plugins.box_properties(centre=[[0, 0, 8]], size=[[1.8, 1.5, 4.2]], yaw=[0.3])}})
     image = mi.render(scene, spp=1)           # RGB + instance, depth, nx, ny, nz
     out = scene.integrator().trace_rays(origins, directions, times)
 """
@@ -106,43 +109,50 @@ from dataclasses import dataclass
 import drjit as dr
 import mitsuba as mi
 
+from .common import instance_colours
+from .properties import PropertyError, read_float, read_int
 from .sdf import BoxView, DecodedBoxes, InstanceField, box_normal_local, box_sdf_local, ray_box_interval
-from .silhouette import instance_colours
 
 INF = float("inf")
+PLUGIN = "sdf_tracer"
 
 
 @dataclass(frozen=True)
-class TracerConfig:
-    """Settings of :class:`SDFTracerIntegrator` (see the plugin table)."""
+class TracerSettings:
+    """Settings of :class:`SDFTracerIntegrator` (the first four are plugin properties)."""
 
     max_iterations: int = 256
-    epsilon: float = 1e-5  # m, hit tolerance of the march
+    epsilon: float = 1e-5  #: hit tolerance of the march (scene units)
     near: float = 0.0
-    far: float = 200.0  # beyond the farthest box-centre range (110 m) plus a vehicle
-    start_margin: float = 0.05  # m, enlargement of the start boxes (start strictly outside)
-    refine_iterations: int = 64
-    depth_tolerance: float = 1e-6  # m, final bracket width
-    normal_step: float = 1e-3  # m, finite-difference step of residual normals
+    far: float = 200.0  #: beyond a box 110 m away plus a vehicle
+    start_margin: float = 0.05  #: enlargement of the start boxes (the march starts strictly outside)
+    refine_iterations: int = 64  #: at most this many Illinois steps of the root refinement
+    depth_tolerance: float = 1e-6  #: final bracket width of the refinement (scene units)
+    normal_step: float = 1e-3  #: central finite-difference step of residual normals (scene units)
+
+    def validated(self) -> "TracerSettings":
+        """These settings, or a :class:`~vsrd_plugins.properties.PropertyError` naming the field
+        whose value does not fit."""
+        for name in ("max_iterations", "refine_iterations"):
+            if getattr(self, name) < (1 if name == "max_iterations" else 0):
+                raise PropertyError(f"{PLUGIN}: '{name}' must be >= {1 if name == 'max_iterations' else 0}, "
+                                    f"got {getattr(self, name)}")
+        for name in ("epsilon", "depth_tolerance", "normal_step"):
+            if not getattr(self, name) > 0:
+                raise PropertyError(f"{PLUGIN}: '{name}' must be > 0, got {getattr(self, name)}")
+        if not self.start_margin >= 0:
+            raise PropertyError(f"{PLUGIN}: 'start_margin' must be >= 0, got {self.start_margin}")
+        if not (0.0 <= self.near < self.far):
+            raise PropertyError(f"{PLUGIN}: properties 'near' and 'far' need 0 <= near < far, got {self.near}, {self.far}")
+        return self
 
     @staticmethod
-    def from_props(props: mi.Properties) -> "TracerConfig":
-        d = TracerConfig()
-        kw = {}
-        for name, typ in (("max_iterations", int), ("epsilon", float), ("near", float),
-                          ("far", float), ("start_margin", float), ("refine_iterations", int),
-                          ("depth_tolerance", float), ("normal_step", float)):
-            kw[name] = typ(props.get(name, getattr(d, name)))
-        cfg = TracerConfig(**kw)
-        if cfg.max_iterations < 1 or cfg.refine_iterations < 0:
-            raise ValueError("sdf_tracer: max_iterations must be >= 1 and refine_iterations >= 0")
-        if not (cfg.epsilon > 0 and cfg.depth_tolerance > 0 and cfg.normal_step > 0
-                and cfg.start_margin >= 0):
-            raise ValueError("sdf_tracer: epsilon, depth_tolerance, normal_step must be > 0 "
-                             "and start_margin >= 0")
-        if not (0.0 <= cfg.near < cfg.far):
-            raise ValueError("sdf_tracer: need 0 <= near < far")
-        return cfg
+    def from_props(props) -> "TracerSettings":
+        d = TracerSettings()
+        return TracerSettings(max_iterations=read_int(props, PLUGIN, "max_iterations", d.max_iterations, 1),
+                              epsilon=read_float(props, PLUGIN, "epsilon", d.epsilon, positive=True),
+                              near=read_float(props, PLUGIN, "near", d.near, minimum=0.0),
+                              far=read_float(props, PLUGIN, "far", d.far, positive=True)).validated()
 
 
 def _to_local64(bv: BoxView, p: mi.Point3d) -> mi.Vector3d:
@@ -160,8 +170,9 @@ class SDFTracerIntegrator(mi.ad.integrators.common.ADIntegrator):
 
     def __init__(self, props: mi.Properties):
         super().__init__(props)
-        self.field = InstanceField(props)
-        self.cfg = TracerConfig.from_props(props)
+        self.field = InstanceField(props, PLUGIN)
+        #: The tracer's settings (:class:`TracerSettings`); assign a changed copy to change them.
+        self.settings = TracerSettings.from_props(props)
         self._sensor: mi.Sensor | None = None
         #: Counters of the last :meth:`trace_rays` call (for benchmarks and tests).
         self.last_stats: dict[str, int] = {}
@@ -171,14 +182,19 @@ class SDFTracerIntegrator(mi.ad.integrators.common.ADIntegrator):
         self.field.traverse(cb)
 
     def parameters_changed(self, keys: list[str]) -> None:
-        """Nothing is cached: parameters are decoded at every call."""
+        """Check the widths of the box parameters (nothing is cached: they are read at every call)."""
+        self.field.check_parameters()
+
+    def boxes(self) -> dict:
+        """The boxes as NumPy arrays (:meth:`~vsrd_plugins.sdf.InstanceField.boxes`)."""
+        return self.field.boxes()
 
     def aov_names(self) -> list[str]:
         return ["instance", "depth", "nx", "ny", "nz"]
 
     def to_string(self) -> str:
         return (f"SDFTracerIntegrator[instances={self.field.n}, residual={self.field.use_residual}, "
-                f"max_iterations={self.cfg.max_iterations}, epsilon={self.cfg.epsilon}]")
+                f"max_iterations={self.settings.max_iterations}, epsilon={self.settings.epsilon}]")
 
     def render(self, scene: mi.Scene, sensor=0, seed=0, spp: int = 0, develop: bool = True,
                evaluate: bool = True) -> mi.TensorXf:
@@ -307,7 +323,7 @@ class SDFTracerIntegrator(mi.ad.integrators.common.ADIntegrator):
         ``status``: 0 background, 1 hit at ``ta`` (no bracket), 2 surface bracketed by
         ``[ta, tb]`` with ``fa > 0 > fb``.
         """
-        cfg, n_inst = self.cfg, self.field.n
+        cfg, n_inst = self.settings, self.field.n
         n = dr.width(o.x)
         status = dr.zeros(mi.UInt32, n)
         ta, tb, fa, fb = (dr.zeros(mi.Float64, n) for _ in range(4))
@@ -374,7 +390,7 @@ class SDFTracerIntegrator(mi.ad.integrators.common.ADIntegrator):
 
     def _refine(self, o, d, time, status, ta, tb, fa, fb) -> mi.Float64:
         """Step 3: Illinois regula falsi on bracketed rays. Returns the full-width ``t``."""
-        cfg = self.cfg
+        cfg = self.settings
         t_out = mi.Float64(ta)
         ridx = dr.compress(status == 2)
         if dr.width(ridx) == 0:
@@ -429,7 +445,7 @@ class SDFTracerIntegrator(mi.ad.integrators.common.ADIntegrator):
                        + dr.gather(mi.Float64, t, ridx) * dr.gather(mi.Vector3d, d, ridx))
         _, arg = self._scene_sdf(dec, weights, p, tg)
         nrm = dr.zeros(mi.Vector3f, m)
-        h = self.cfg.normal_step
+        h = self.settings.normal_step
         for k in range(self.field.n):
             sel = dr.compress(arg == k)
             if dr.width(sel) == 0:

@@ -69,6 +69,12 @@ def initial_boxes(seq: Sequence, spec, obs: Observations, cfg: AutolabelConfig):
     boxes = [inits[int(i)].to_box() if int(i) in inits else b for i, b in zip(obs.instance_ids, defaults)]
     missing = [int(i) for i in obs.instance_ids if int(i) not in inits]
     note = "stereo initialisation" + (f" (default box for {missing})" if missing else "")
+    # parked cars: the length axis the masks support (axis_seen: the cloud or velocity showed it)
+    seen = [inits[int(i)].axis_seen if int(i) in inits else False for i in obs.instance_ids]
+    axes = choose_yaws(boxes, obs, cfg.axis, anchor=cfg.weights.init, axis_seen=seen)
+    boxes = [dataclasses.replace(b, yaw=a.yaw) for b, a in zip(boxes, axes)]
+    switched = [int(b.instance_id) for b, a in zip(boxes, axes) if a.switched]
+    note += f"; axis turned for {switched}" if switched else ""
     return boxes, boxes, note
 
 
@@ -84,11 +90,6 @@ def process_target(task: TargetTask) -> TargetResult:
     if obs.num_instances == 0:
         return TargetResult(status="skipped", seconds=0.0, outputs=(), error="no target instances")
     start, init_ref, note = initial_boxes(seq, spec, obs, cfg)
-    if init_ref is not None:  # parked cars: the length axis the masks support
-        axes = choose_yaws(start, obs, cfg.axis, anchor=cfg.weights.init)
-        start = init_ref = [dataclasses.replace(b, yaw=a.yaw) for b, a in zip(start, axes)]
-        switched = [int(b.instance_id) for b, a in zip(start, axes) if a.switched]
-        note += f"; axis turned for {switched}" if switched else ""
     optimiser = BoxOptimiser(obs, start, cfg, init_boxes=init_ref)
     result = optimiser.run()
     index = np.array([int(np.flatnonzero(obs.instance_ids == i)[0]) for i in result.instance_ids])

@@ -13,6 +13,9 @@ import importlib
 #: Modules contributing ``vsrd-mi bench`` sub-commands, in ``--help`` order.
 BENCH_MODULES: tuple[str, ...] = (
     "vsrd_mi.bench.integrator",
+    "vsrd_mi.bench.integrator_features",
+    "vsrd_mi.bench.residual_scenes",
+    "vsrd_mi.bench.residual_trained",
     "vsrd_mi.bench.autolabel",
     "vsrd_mi.bench.init_accuracy",
     "vsrd_mi.bench.memory",

@@ -57,8 +57,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
         "export-dataset", help="write autolabel runs as a KITTI object-detection training set",
         description="Every labelled frame of the runs in the KITTI object-detection layout that detector "
-                    "loaders read (mmdetection3d, MonoFlex, MonoDETR): training/image_2/%%06d.png, "
-                    "training/calib/%%06d.txt (P2 = the camera of the labels), training/label_2/%%06d.txt "
+                    "loaders read (mmdetection3d, MonoFlex, MonoDETR): training/image_2/%06d.png, "
+                    "training/calib/%06d.txt (P2 = the camera of the labels), training/label_2/%06d.txt "
                     "(score = confidence as the 16th value), ImageSets/{train,val,trainval,test}.txt and "
                     "mapping.txt (line i: '<sequence> <frame>' of index i). See docs/export.md.")
     p.add_argument("out", help="output folder")

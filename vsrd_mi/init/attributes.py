@@ -53,6 +53,8 @@ class InstanceInit:
         velocity_effective_pairs: effective number of pairs behind it (the dynamic flag's
             significance test, :func:`is_dynamic`).
         truncated: frame offsets where the instance's mask touches the image border.
+        axis_seen: whether the yaw's length axis came from evidence (the velocity, or a cloud
+            longer than a car is wide along it) rather than the road prior.
     """
 
     instance_id: int
@@ -69,6 +71,7 @@ class InstanceInit:
     velocity_standard_error: float = 0.0
     velocity_effective_pairs: float = 0.0
     truncated: tuple[int, ...] = ()
+    axis_seen: bool = True
 
     def to_box(self, default_size: tuple[float, float, float] = FootprintConfig.typical_size) -> Box3D:
         """The initial box (``default_size`` when no size was fitted); velocity kept as estimated."""
@@ -340,6 +343,14 @@ def _refine_rectangle_angle(xz: np.ndarray, psi: float, cfg: OrientationConfig) 
     return psi
 
 
+def length_axis_seen(points: np.ndarray, yaw: float, cfg: OrientationConfig) -> bool:
+    """Whether the cloud itself shows which footprint axis of ``yaw`` is the length: it extends
+    further than ``cfg.length_evidence`` along one of them (else :func:`dominant_yaw` fell back on
+    the road prior)."""
+    xz = points[:, [0, 2]] - points[:, [0, 2]].mean(axis=0)
+    return max(hi - lo for lo, hi in _edge_extents(xz, yaw, cfg.edge_percentile)) > cfg.length_evidence
+
+
 def dominant_yaw(points: np.ndarray, cfg: OrientationConfig) -> float:
     """Yaw of a parked car from the dominant horizontal directions of its cloud.
 
@@ -497,6 +508,7 @@ def initialise_instance(instance_id: int, clouds: dict[int, np.ndarray],
     max_off = fp.aggregate_dynamic_offset if dynamic else fp.aggregate_static_offset
     pts, cams = merged_cloud(clouds, cameras, motion, ref, max_off, fp.max_fit_points)
     yaw = yaw_from_velocity(velocity) if dynamic else dominant_yaw(pts, cfg.orientation)
+    axis_seen = dynamic or length_axis_seen(pts, yaw, cfg.orientation)
     if fp.enabled:
         centre, size = fit_footprint(pts, yaw, cams, fp)
     else:
@@ -506,7 +518,7 @@ def initialise_instance(instance_id: int, clouds: dict[int, np.ndarray],
                         reference_offset=ref, cloud_mean=cloud_mean, n_velocity_pairs=n_pairs,
                         velocity_standard_error=est.standard_error,
                         velocity_effective_pairs=est.effective_pairs,
-                        truncated=tuple(sorted(truncated)))
+                        truncated=tuple(sorted(truncated)), axis_seen=axis_seen)
 
 
 def touches_border(mask: np.ndarray, margin: int) -> bool:

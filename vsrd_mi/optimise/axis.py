@@ -16,7 +16,8 @@ occluder may cut short, plus the initialisation anchor on the centre) for each y
 keeps the initial yaw unless another hypothesis fits the mask boxes clearly better
 (``AxisConfig.switch_ratio``) and its box's silhouettes overlap the masks better too
 (``AxisConfig.min_silhouette_gain``: the mask boxes alone can be matched by a box turned the wrong
-way, the masks' shapes less so).
+way, the masks' shapes less so). Where the initial axis was only the road prior's (the cloud did
+not show the length), the best-fitting hypothesis is taken whenever both measures prefer it.
 """
 
 from __future__ import annotations
@@ -121,19 +122,20 @@ def fit_cost(box: Box3D, yaw: float, world_to_cam: np.ndarray, K: np.ndarray, bo
 
 def hypotheses(yaw: float) -> list[float]:
     """The initial yaw, it turned by 90 degrees, and the optimisation frame's forward direction
-    (the road, along which the ego drives), its normal and the two diagonals; duplicates (mod 180)
-    dropped."""
+    (the road, along which the ego drives) and its normal; duplicates (mod 180) dropped."""
     out: list[float] = []
-    for y in (yaw, yaw + 0.5 * np.pi, 0.0, 0.5 * np.pi, 0.25 * np.pi, -0.25 * np.pi):
+    for y in (yaw, yaw + 0.5 * np.pi, 0.0, 0.5 * np.pi):
         y = float(wrap_angle(y))
         if all(abs(wrap_angle(2.0 * (y - o))) > 1e-6 for o in out):
             out.append(y)
     return out
 
 
-def choose_yaw(box: Box3D, n: int, obs: Observations, cfg: AxisConfig, anchor: float) -> AxisChoice:
+def choose_yaw(box: Box3D, n: int, obs: Observations, cfg: AxisConfig, anchor: float,
+               axis_seen: bool = True) -> AxisChoice:
     """The yaw hypothesis of box ``n`` (instance ``n`` of ``obs``) the masks support (see the
-    module docstring); the initial yaw unless another costs less than ``cfg.switch_ratio`` of it."""
+    module docstring); the initial yaw unless another costs less than ``cfg.switch_ratio`` of it
+    (any less, when the initial axis was not ``axis_seen`` but the road prior's)."""
     views = np.flatnonzero(obs.visible[:, n])
     ys = hypotheses(box.yaw)
     if box.dynamic or len(views) < cfg.min_views:
@@ -144,9 +146,9 @@ def choose_yaw(box: Box3D, n: int, obs: Observations, cfg: AxisConfig, anchor: f
             for y in ys]
     costs = [c for c, _ in fits]
     best = int(np.argmin(costs))
-    switched = (best != 0 and costs[best] < cfg.switch_ratio * costs[0]
-                and silhouette_iou(fits[best][1], n, obs, views) > silhouette_iou(fits[0][1], n, obs, views)
-                + cfg.min_silhouette_gain)
+    ratio, gain = (cfg.switch_ratio, cfg.min_silhouette_gain) if axis_seen else (1.0, 0.0)
+    switched = (best != 0 and costs[best] < ratio * costs[0]
+                and silhouette_iou(fits[best][1], n, obs, views) > silhouette_iou(fits[0][1], n, obs, views) + gain)
     return AxisChoice(ys[best] if switched else box.yaw, tuple(ys), tuple(costs), switched)
 
 
@@ -171,11 +173,14 @@ def silhouette_iou(box: Box3D, n: int, obs: Observations, views: np.ndarray) -> 
     return float(np.mean(ious)) if ious else 0.0
 
 
-def choose_yaws(boxes: list[Box3D], obs: Observations, cfg: AxisConfig, anchor: float) -> list[AxisChoice]:
-    """:func:`choose_yaw` for the initial box of every instance of ``obs`` (box k is instance k)."""
+def choose_yaws(boxes: list[Box3D], obs: Observations, cfg: AxisConfig, anchor: float,
+                axis_seen: list[bool] | None = None) -> list[AxisChoice]:
+    """:func:`choose_yaw` for the initial box of every instance of ``obs`` (box k is instance k);
+    ``axis_seen[k]``: whether box k's axis came from evidence (default: all did)."""
     if not cfg.enabled:
         return [AxisChoice(b.yaw, (b.yaw,), (), False) for b in boxes]
-    return [choose_yaw(b, k, obs, cfg, anchor) for k, b in enumerate(boxes)]
+    seen = [True] * len(boxes) if axis_seen is None else axis_seen
+    return [choose_yaw(b, k, obs, cfg, anchor, s) for k, (b, s) in enumerate(zip(boxes, seen))]
 
 
 __all__ = ["AxisChoice", "choose_yaw", "choose_yaws", "fit_cost", "hypotheses", "projected_rectangles"]

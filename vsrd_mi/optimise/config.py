@@ -31,44 +31,22 @@ class LossWeights:
     projection_diou: float = 0.1
     silhouette: float = 1.0
     eikonal: float = 0.01
-    #: Init regulariser weight of static instances (the paper: 0.1; the authors' code: 1.0). The
-    #: projection loss is biased (a car's mask box is smaller than its box's projected footprint:
-    #: median 4-5 px left and right, 2 px at the bottom before :class:`CarProfile`, on the
-    #: synthetic cars; ``benchmarks/footprint_gap.json``), and for a parked car near the direction of travel
-    #: the ego motion's parallax is too small to resist that bias along the line of sight: a van
-    #: 31 m ahead drifted 2.3 m from a 0.2 m-accurate stereo start at 0.1. Measured (mean 3D IoU of
-    #: parked cars; static-heavy targets 11, 18 / dynamic-heavy targets 8, 13, 19): 0.1 -> 0.70 /
-    #: 0.39, 2 -> 0.73 / 0.63, 20 -> 0.70 / 0.59 (too strong: the stereo start's own 0.2-0.4 m
-    #: range error is kept).
+    #: Init regulariser weight of parked cars (the paper: 0.1; the authors' code: 1.0). For a parked
+    #: car near the direction of travel the ego motion's parallax is too small to resist the
+    #: projection loss along the line of sight; 2 held such cars where 0.1 let a van drift 2.3 m
+    #: and 20 kept the stereo start's own range error (docs/autolabel.md).
     init: float = 2.0
-    #: Init regulariser weight of dynamic instances (``init`` applies to static ones). The
-    #: silhouettes of a car moving at constant velocity seen from a camera moving at constant
-    #: velocity cannot tell its depth: scaling its offset from the camera, its velocity relative
-    #: to the ego motion and its size by one factor leaves every frame's image unchanged. The
-    #: stereo initialisation is then the only depth evidence and has to outweigh the pixel-scale
-    #: image losses; static cars are triangulated by the ego motion (when off the line of travel).
-    #: Measured (mean 3D IoU of moving cars, default config): 0.1 (the paper) 0.23, 20 0.68 on the
-    #: dynamic-heavy benchmark sequence (targets 8, 13, 19); 0.1 0.14, 3 0.55, 20 0.64 on the
-    #: bundled scene's target 21. Static cars are unchanged. Not a paper setting: the ``paper``
-    #: preset shares it (it differs from the default in compute budget and the size / yaw prior).
+    #: Init regulariser weight of moving cars. A car moving at constant velocity seen from a camera
+    #: moving at constant velocity has no depth in its images (its offset, relative velocity and
+    #: size scale together), so the stereo initialisation must outweigh the pixel-scale losses:
+    #: 0.1 (the paper) left moving cars at 0.23 mean 3D IoU, 20 at 0.68 (docs/autolabel.md).
     init_dynamic: float = 20.0
     #: Size prior (not in the paper; on in the ``paper`` preset, off in the default): L1 distance
-    #: (m) of each box's size from its initial size (the stereo fit, at least a typical car;
-    #: :class:`vsrd_mi.init.config.FootprintConfig`). The projection loss hardly sees some
-    #: directions of a box -- the length of a car seen end-on, the yaw / length trade-off of a
-    #: car ahead -- and is biased in them (a car's mask box is smaller than its box's footprint),
-    #: so without a prior the boxes drift along them for as long as the optimisation runs: over
-    #: the paper's 3000 steps parked cars came out 0.9-2.3 m short and a van turned 46 degrees
-    #: (dynamic-heavy frame 13), and `paper` ended 0.04-0.09 mean 3D IoU below the 600-step
-    #: default. With 2 (a metre of size costs what a metre of position does) the 3000-step runs
-    #: end where the short one does (``benchmarks/autolabel_shape_prior.json``,
-    #: ``benchmarks/autolabel_paper_prior.json``). The 600-step default with early stopping
-    #: does not drift that far, and there the prior costs accuracy (it pulls cars shorter than
-    #: typical towards 4.3 m): mean 3D IoU without / with it on six targets of three sequences
-    #: 0.680 / 0.675, bundled scene parked 0.668 / 0.648, three fresh 4 + 2 sequences parked
-    #: 0.694 / 0.665 and moving 0.612 / 0.610 (``benchmarks/mixed_sequences*.json``), length
-    #: error 0.39-0.65 m / 0.25-0.38 m. So the default leaves it off and a long schedule
-    #: (``paper``, or ``--steps`` well beyond 600) should turn it on. 0 switches a term off.
+    #: (m) of each box's size from its initial size. The projection loss hardly sees some
+    #: directions of a box (the length of a car seen end-on, the yaw / length trade-off of a car
+    #: ahead), so over the paper's 3000 steps boxes drift along them; the prior holds them. The
+    #: 600-step default with early stopping does not drift that far, and there the prior cost
+    #: accuracy (it pulls cars towards a typical length): off (docs/autolabel.md). 0 switches a term off.
     init_size: float = 0.0
     #: Yaw prior (not in the paper): ``sin^2`` of each box's yaw change from its initial yaw
     #: (period pi: a box initialised backwards costs nothing). See ``init_size``.
@@ -84,10 +62,7 @@ class LossWeights:
     projection_mode: str = "symmetric"
     #: ``containment`` mode only: weight of the projected box's parts outside the mask box (the
     #: mask box's parts outside the projected box weigh 1; 1 here is the symmetric loss, 0 pure
-    #: containment). Pure containment keeps a ground-truth start (0.95 / 0.98 mean 3D IoU parked
-    #: / moving) but does not shrink the typical-sized stereo start (0.58 / 0.54; the symmetric
-    #: loss 0.69 / 0.65); 0.1-0.3 did not beat the symmetric loss on both classes
-    #: (``benchmarks/loss_bias.py``, README).
+    #: containment, which does not shrink a too-large start; docs/autolabel.md).
     projection_excess: float = 0.0
     #: Rendered labels are clamped to [eps, 1 - eps] inside the BCE.
     bce_eps: float = 1e-6
@@ -106,35 +81,17 @@ class CarProfile:
     """What the projection loss projects: the car a box bounds, not the box's 8 corners.
 
     A car meets the ground only at its wheels, which sit ``overhang`` metres in from each end of
-    its box (a car's front and rear overhangs, axle to bumper, are 0.7-1.1 m), and the body
-    over the overhangs starts ``clearance`` metres above the ground (the bumpers' underside).
-    The box's bottom corners at the ends enclose empty space, so in every view that sees an end
-    of a car its mask's bottom is above its box's projected bottom: median 2.1 px over 366 views
-    of six targets (3.7 px at 10-20 m, 8.5 px within 10 m; 5.5 % of the box's projected height;
-    ``benchmarks/footprint_gap.py``, exact projection of the ground-truth boxes). The symmetric
-    projection loss closes that gap by pushing boxes away along the line of sight (parked cars
-    ended 0.2-0.75 m too far) or shortening them. The loss therefore projects two parts of each box (see
-    :func:`vsrd_mi.optimise.losses.projected_boxes`): the body above ``clearance`` and the
-    full height over the length less ``overhang`` at each end; the 2D box is their union's
-    (so ``clearance`` acts only together with a positive ``overhang``).
-    The values are typical of passenger cars, chosen before any run, not fitted to the synthetic
-    ones. Mean 3D IoU, box corners / this profile (4 parked + 2 moving sequences, every labelled
-    frame): seeds 4401-4403 parked 0.694 / 0.726, moving 0.612 / 0.645; the fresh seeds 4404-4406
-    (added after the choice) 0.704 / 0.718 and 0.700 / 0.728; bundled scene 0.668 / 0.690 and
-    0.639 / 0.659. 0.15 / 0.7 and 0.35 / 1.1 give 0.730 / 0.640 and 0.715 / 0.645 on the first
-    three (``benchmarks/car_profile_sensitivity.json``).
-    Seen from above, a car's corners are rounded (bumpers wrap around; a plan radius of
-    0.3-0.5 m is common), so in oblique views its mask's left and right edges lie inside the
-    projections of its box's vertical edges: median 4.5 / 5.0 px, 12 % of the projected height
-    (``benchmarks/footprint_gap.json``), which the symmetric loss closes mostly by shortening the
-    box. The body part is therefore an octagonal prism, each plan corner cut ``corner`` metres
-    along both sides (the union of two crossed boxes). 0.3 m was chosen as a typical value before
-    its first run (the gap's median at 0.2 / 0.3 / 0.5 m: 3.6 / 3.2 / 2.4 px left). Mean 3D IoU of
-    parked / moving cars, without / with it (six 4 + 2 sequences, every labelled frame; before
-    the consensus): 0.735 / 0.749 and 0.704 / 0.699; bundled scene 0.690 / 0.702 and 0.659 /
-    0.677. A box-shaped van then comes out ~0.4 m long instead of 0.1 m. Sensitivity (with the
-    consensus, six sequences; ``benchmarks/mixed_sequences_corner0{2,4}.json``): corner 0.2 / 0.3 /
-    0.4 m give parked 0.755 / 0.755 / 0.750, moving 0.704 / 0.699 / 0.692.
+    its box (axle to bumper, 0.7-1.1 m on cars), and the body over the overhangs starts
+    ``clearance`` metres above the ground (the bumpers' underside): the box's bottom corners at the
+    ends enclose empty space, so a car's mask ends above its box's projected bottom (8.5 px median
+    within 10 m), a gap the symmetric projection loss closed by pushing boxes away or shortening
+    them. Seen from above a car's corners are rounded (bumpers wrap around), so in oblique views its
+    mask's sides lie inside its box's projected vertical edges, which the loss closed by shortening
+    the box. The loss therefore projects parts of each box (:func:`vsrd_mi.optimise.losses.projected_boxes`):
+    the body above ``clearance`` as an octagonal prism (each plan corner cut ``corner`` metres along
+    both sides) and the full height over the length less ``overhang`` at each end, and takes the 2D
+    box of their union. The values are those of passenger cars, chosen before any run; the results
+    hardly depend on them (docs/autolabel.md).
     A box holds the whole vehicle, mirrors included, but the mirrors are thin and sit a third of
     the way back: they widen a car's mask box only in views along its axis, while its body sets the
     mask's sides in every other view. So the projected body is ``mirror`` metres narrower on each
@@ -259,6 +216,12 @@ class HeadingConfig:
     min_evidence: float = 0.01
     #: Frames whose mask has fewer pixels than this take no part (too small to show a shape).
     min_mask_pixels: int = 200
+    #: Look at the lamps' colour too (red at the rear; :func:`vsrd_mi.optimise.heading.lamp_evidence`).
+    lamps: bool = True
+    #: The lamps decide when at least this many frames showed a lamped end ...
+    min_lamp_views: int = 2
+    #: ... and the lamped rears outnumber the lamped fronts (or the reverse) by this share of them.
+    min_lamp_evidence: float = 0.5
     #: Which way parked cars are assumed to face when the silhouettes cannot tell: ``"none"`` keeps
     #: the optimiser's yaw; ``"right-hand"`` (traffic drives on the right, the ego along +z of the
     #: optimisation frame) faces a car on the right (x > 0) along +z and one on the left along -z;
@@ -288,15 +251,13 @@ class AutolabelConfig:
     isolated_rays: bool = True
     #: Optimise the residual distance field after the warm-up (paper §III-C). Off by default:
     #: at the paper's loss weights the silhouette term is ~1/200 of the pixel-scale projection
-    #: term, so boxes come out the same to 0.001 mean 3D IoU with and without the field, at 5-6x
-    #: the time (``benchmarks/autolabel.json``: default vs ``residual``; over the paper's 3000 steps it
-    #: does move them, but not closer: ``benchmarks/autolabel_paper_vs_default.json``). The ``paper`` preset
-    #: and ``--set residual=true`` turn it on; the integrators support it either way.
+    #: term, so boxes came out the same to 0.001 mean 3D IoU with and without the field, at 4-6x
+    #: the time (docs/autolabel.md). The ``paper`` preset and ``--set residual=true`` turn it on.
     residual: bool = False
     #: How the residual MLP's gradients are computed (the ``vsrd_silhouette`` plugin's
     #: ``residual_gradients``): ``fused`` (hand-written derivatives around one cooperative-vector
     #: kernel) or ``tensor`` (Dr.Jit AD through tensor-mode matmuls, the reference;
-    #: ``benchmarks/residual_gradients.py`` times both).
+    #: docs/integrators.md compares them).
     residual_gradients: str = "fused"
     velocity: bool = True
     #: Occlusion-aware projection loss (not in the paper): a side of a mask box that an occluder
@@ -395,7 +356,7 @@ def paper_config() -> AutolabelConfig:
 
 
 def default_config() -> AutolabelConfig:
-    """The fast default (see the benchmark in ``benchmarks/autolabel.json``)."""
+    """The fast default (docs/autolabel.md says why it differs from the paper's)."""
     return AutolabelConfig()
 
 

@@ -13,6 +13,11 @@ where the instance is seen, and compares them with the instance's masks:
 * the evidence is the difference of the two (positive: the box faces its yaw), and the box is
   turned when the evidence for the other end exceeds ``HeadingConfig.min_evidence``.
 
+A second cue is colour: rear lamps are red, front lamps white or amber. Frame by frame, an end of
+the box (its rear or front fifth) looks lamped when a lamp's share of its visible pixels is red
+(:func:`lamp_evidence`); where the lamped ends agree on which is the rear, the lamps decide, before
+the silhouettes (a red car's paint covers most of both ends and leaves it to them).
+
 Where the evidence is weaker than that (a car seen end-on only, or too small), an optional,
 documented prior decides (``HeadingConfig.prior``: which way parked cars usually face on each side
 of a right- or left-hand traffic street); the default has none and keeps the optimiser's yaw.
@@ -26,13 +31,26 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..data.observations import Observations
+from ..data.png import read_png
 from ..geometry.boxes import Box3D, wrap_angle
 from ..geometry.camera import box_to_2d
-from ..geometry.silhouettes import BODY_TEMPLATES, BodyTemplate, rasterise_template
+from ..geometry.silhouettes import BODY_TEMPLATES, BodyPart, BodyTemplate, rasterise_template
 from .config import HeadingConfig
 
 #: Pixels added around a view's region of interest (mask box and projected box).
 ROI_MARGIN_PX = 3
+#: The box's front and rear fifths (full height and width), where lamps sit.
+FRONT_END = BodyTemplate("front", (BodyPart(((0.6, 0.0), (1.0, 0.0), (1.0, 1.0), (0.6, 1.0)), 1.0, 1.0),))
+REAR_END = BodyTemplate("rear", (BodyPart(((-1.0, 0.0), (-0.6, 0.0), (-0.6, 1.0), (-1.0, 1.0)), 1.0, 1.0),))
+#: A pixel is lamp red when its red channel exceeds this and both others times this ratio: rear
+#: lamps are saturated red, amber indicators (green about 60 % of red) and paint in shadow are not.
+RED_MIN = 60
+RED_RATIO = 2.2
+#: An end of a car looks lamped when this share of its visible pixels is lamp red: a pair of rear
+#: lamps covers a few to a quarter of a car's end; red paint covers most of it.
+LAMP_SHARE = (0.01, 0.3)
+#: An end takes part in a frame when at least this many of its pixels are visible.
+MIN_END_PIXELS = 30
 
 
 @dataclass(frozen=True)
@@ -51,8 +69,8 @@ class HeadingDecision:
 
     def to_dict(self) -> dict:
         """JSON record; ``evidence`` is for the kept box's own front (positive: the silhouettes agree)."""
-        return {"evidence": -self.evidence if self.turned else self.evidence, "views": self.views,
-                "source": self.source, "turned": self.turned}
+        return {"evidence": float(-self.evidence if self.turned else self.evidence), "views": int(self.views),
+                "source": self.source, "turned": bool(self.turned)}
 
 
 def turned(box: Box3D) -> Box3D:
@@ -131,18 +149,69 @@ def prior_faces_yaw(box: Box3D, prior: str) -> bool | None:
     return along_ego == with_traffic
 
 
-def decide_heading(box: Box3D, n: int, obs: Observations, cfg: HeadingConfig) -> HeadingDecision:
-    """Front / back of one optimised box (``n``: its instance in ``obs``), see the module doc."""
+def lamp_red(image: np.ndarray) -> np.ndarray:
+    """Pixels of an RGB image that look like a lit or unlit rear lamp (see :data:`RED_RATIO`)."""
+    r, g, b = (image[..., k].astype(np.int32) for k in range(3))
+    return (r > RED_MIN) & (r > RED_RATIO * g) & (r > RED_RATIO * b)
+
+
+def lamp_evidence(box: Box3D, n: int, obs: Observations, images: list[np.ndarray | None],
+                  min_mask_pixels: int = HeadingConfig.min_mask_pixels) -> tuple[float, int]:
+    """``(evidence, views)``: over the frames whose image is given and whose mask has at least
+    ``min_mask_pixels`` pixels, each end of the box (its rear and front fifth) that shows at least
+    :data:`MIN_END_PIXELS` mask pixels looks lamped when :data:`LAMP_SHARE` of them are lamp red
+    (a lamp's share of an end; red paint covers more and is left out). The evidence is the views
+    with a lamped rear minus those with a lamped front, over both (positive: the box faces its yaw);
+    ``views`` counts the lamped ends."""
+    rear = front = 0
+    for f in range(obs.num_frames):
+        mask_full = obs.masks[f, n]
+        if images[f] is None or np.count_nonzero(mask_full) < min_mask_pixels:
+            continue
+        w2c = np.linalg.inv(obs.cam_to_opt[f])
+        moved = box.at_offset(float(obs.dt[f]))
+        proj = box_to_2d(moved, obs.K[f], world_to_cam=w2c, image_size=obs.image_size)
+        x0, y0, x1, y1 = roi = _roi(obs.boxes2d[f, n], proj, obs.image_size)
+        mask = mask_full[y0:y1, x0:x1]
+        red = lamp_red(images[f][y0:y1, x0:x1]) & mask
+        ends = [rasterise_template(t, moved, w2c, obs.K[f], roi) for t in (REAR_END, FRONT_END)]
+        if ends[0] is None or ends[1] is None:
+            continue
+        for k, (own, other) in enumerate(((ends[0], ends[1]), (ends[1], ends[0]))):
+            region = mask & own & ~other
+            pixels = np.count_nonzero(region)
+            if pixels < MIN_END_PIXELS:
+                continue
+            share = np.count_nonzero(red & region) / pixels
+            if LAMP_SHARE[0] <= share <= LAMP_SHARE[1]:
+                rear, front = (rear + 1, front) if k == 0 else (rear, front + 1)
+    total = rear + front
+    return ((rear - front) / total if total else 0.0), int(total)
+
+
+def decide_heading(box: Box3D, n: int, obs: Observations, cfg: HeadingConfig,
+                   images: list[np.ndarray | None] | None = None) -> HeadingDecision:
+    """Front / back of one optimised box (``n``: its instance in ``obs``), see the module doc.
+    ``images``: the frames' left images (RGB), for the lamps (None: silhouettes only)."""
     if box.dynamic:
         return HeadingDecision(box, 0.0, 0, "moving", False)
     fwd, bwd, views = heading_scores(box, n, obs, min_mask_pixels=cfg.min_mask_pixels)
     evidence = fwd - bwd
+    lamps, red = lamp_evidence(box, n, obs, images, cfg.min_mask_pixels) if images else (0.0, 0)
+    if red >= cfg.min_lamp_views and abs(lamps) >= cfg.min_lamp_evidence:
+        return HeadingDecision(turned(box) if lamps < 0 else box, float(lamps), views, "lamps", bool(lamps < 0))
     if abs(evidence) > cfg.min_evidence:
-        turn, source = evidence < 0, "silhouette"
+        turn, source = bool(evidence < 0), "silhouette"
     else:
         faces = prior_faces_yaw(box, cfg.prior)
         turn, source = (False, "kept") if faces is None else (not faces, "prior")
     return HeadingDecision(turned(box) if turn else box, evidence, views, source, turn)
+
+
+def frame_images(obs: Observations) -> list[np.ndarray]:
+    """The left RGB image of every frame of ``obs``."""
+    w, h = obs.image_size
+    return [read_png(p, dtype=np.uint8, channels=3, size=(w, h)) for p in obs.image_paths_left]
 
 
 def decide_headings(boxes: list[Box3D], instance_index: np.ndarray, obs: Observations,
@@ -150,4 +219,5 @@ def decide_headings(boxes: list[Box3D], instance_index: np.ndarray, obs: Observa
     """:func:`decide_heading` for every box; ``instance_index[k]`` is box k's instance in ``obs``."""
     if not cfg.enabled:
         return [HeadingDecision(b, 0.0, 0, "kept", False) for b in boxes]
-    return [decide_heading(b, int(i), obs, cfg) for b, i in zip(boxes, instance_index)]
+    images = frame_images(obs) if cfg.lamps and any(not b.dynamic for b in boxes) else None
+    return [decide_heading(b, int(i), obs, cfg, images) for b, i in zip(boxes, instance_index)]

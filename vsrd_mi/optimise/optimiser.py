@@ -21,7 +21,7 @@ integrator with one box per target instance), reads its differentiable parameter
 from __future__ import annotations
 
 import time as _time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import drjit as dr
 import mitsuba as mi
@@ -35,6 +35,7 @@ from ..geometry.camera import image_bounds
 from ..scene.builder import integrator_dict, scene_dict
 from . import losses
 from .config import AutolabelConfig
+from .parameters import BOX_LATENTS, VELOCITY_LATENT, BoxLatents, BoxRanges
 
 INTEGRATOR = "vsrd"
 #: Eikonal points are drawn in each box scaled by this factor (the residual's surface lies inside
@@ -151,11 +152,17 @@ class BoxOptimiser:
         boxes = [Box3D(b.centre, b.size, b.yaw, b.velocity if d else np.zeros(3), bool(d), b.instance_id)
                  for b, d in zip(boxes, self.dynamic)]
         integ = {**integrator_dict(boxes), "sampling": cfg.sampling, "band_samples": cfg.band_samples,
-                 "isolated_rays": cfg.isolated_rays, "residual": False, "residual_seed": cfg.seed,
-                 "residual_gradients": cfg.residual_gradients}
+                 "residual": cfg.residual, "residual_seed": cfg.seed}
         self.scene = mi.load_dict(scene_dict(obs, boxes, integrator=integ))
         self.integrator = self.scene.integrator()
+        self.integrator.settings = replace(self.integrator.settings, isolated_rays=cfg.isolated_rays,
+                                           residual_gradients=cfg.residual_gradients)
+        self.integrator.field.use_residual = False  # the residual field joins after the box-only warm-up
         self.params = mi.traverse(self.scene)
+        # the optimiser's own latent variables (parameters.py), decoded into the boxes each step
+        self.latents = BoxLatents(BoxRanges(), self.n)
+        self.start = self.latents.initial(np.stack([b.centre for b in boxes]), np.stack([b.size for b in boxes]),
+                                          np.array([b.yaw for b in boxes]), np.stack([b.velocity for b in boxes]))
         self.init_boxes = init_boxes
         # supervision frames: target + sources
         self.frames = np.flatnonzero(obs.is_source | (np.arange(obs.num_frames) == 0))
@@ -166,8 +173,6 @@ class BoxOptimiser:
         self._lanes = None
         # fresh eikonal points every step: a fixed set left the field free between its points
         self.eik_rng = np.random.default_rng(cfg.seed + 1)
-        self.box_keys = [f"{INTEGRATOR}.box_dims", f"{INTEGRATOR}.box_centre", f"{INTEGRATOR}.box_yaw"]
-        self.vel_key = f"{INTEGRATOR}.box_velocity"
         self.rdf_keys = [k for k in self.params.keys() if k.startswith(f"{INTEGRATOR}.rdf_")]
 
     def eikonal_points(self) -> np.ndarray:
@@ -210,14 +215,24 @@ class BoxOptimiser:
         return perm
 
     # -- the loop ------------------------------------------------------------------------------
-    def _adam(self, keys: list[str], lr: float) -> mi.ad.Adam:
-        return mi.ad.Adam(lr=lr, params={k: self.params[k] for k in keys})
+    def _adam(self, params: dict[str, mi.Float], lr: float) -> mi.ad.Adam:
+        return mi.ad.Adam(lr=lr, params=params)
+
+    def _write_boxes(self, opt_box: mi.ad.Adam, opt_vel: mi.ad.Adam | None) -> None:
+        """Decode the latents held by the Adam optimisers into the integrator's box parameters
+        (with their AD graph: the gradients reach the latents)."""
+        latents = {k: opt_box[k] for k in BOX_LATENTS}
+        if opt_vel is not None:
+            latents[VELOCITY_LATENT] = opt_vel[VELOCITY_LATENT]
+        for key, value in self.latents.decode(latents).items():
+            self.params[f"{INTEGRATOR}.{key}"] = value
+        self.params.update()
 
     def run(self, progress=None) -> OptimisationResult:
         cfg, it = self.cfg, self.integrator
         t0 = _time.time()
-        opt_box = self._adam(self.box_keys, cfg.lr.box)
-        opt_vel = self._adam([self.vel_key], cfg.lr.velocity) if self.dynamic.any() else None
+        opt_box = self._adam({k: self.start[k] for k in BOX_LATENTS}, cfg.lr.box)
+        opt_vel = self._adam({VELOCITY_LATENT: self.start[VELOCITY_LATENT]}, cfg.lr.velocity) if self.dynamic.any() else None
         opt_rdf = None
         w = cfg.weights
         anchor = prior = None
@@ -250,13 +265,16 @@ class BoxOptimiser:
             residual_on = cfg.residual and step >= cfg.warmup_steps
             if residual_on and opt_rdf is None:
                 it.field.use_residual = True
-                opt_rdf = {"emb": self._adam([f"{INTEGRATOR}.rdf_embedding"], cfg.lr.embedding),
-                           "hyper": self._adam([k for k in self.rdf_keys if "hyper" in k], cfg.lr.hypernetwork)}
+                opt_rdf = {"emb": self._adam({f"{INTEGRATOR}.rdf_embedding": self.params[f"{INTEGRATOR}.rdf_embedding"]},
+                                             cfg.lr.embedding),
+                           "hyper": self._adam({k: self.params[k] for k in self.rdf_keys if "hyper" in k},
+                                               cfg.lr.hypernetwork)}
             if opt_rdf is not None:
                 opt_rdf["emb"].set_learning_rate(cfg.lr.embedding * decay)
                 opt_rdf["hyper"].set_learning_rate(cfg.lr.hypernetwork * decay)
             opts = [o for o in (opt_box, opt_vel) if o is not None] + (list(opt_rdf.values()) if opt_rdf else [])
-            for o in opts:
+            self._write_boxes(opt_box, opt_vel)
+            for o in opt_rdf.values() if opt_rdf else ():
                 self.params.update(o)
 
             dec = it.field.decode()
@@ -298,9 +316,9 @@ class BoxOptimiser:
                 if conv.update(vals[0], self._box_vector()):
                     stopped = True
                     break
-        for o in [opt_box, opt_vel] + (list(opt_rdf.values()) if opt_rdf else []):
-            if o is not None:
-                self.params.update(o)
+        self._write_boxes(opt_box, opt_vel)
+        for o in opt_rdf.values() if opt_rdf else ():
+            self.params.update(o)
         boxes = self.boxes()
         return OptimisationResult(boxes=boxes, instance_ids=self.obs.instance_ids[self.perm],
                                   steps=step + 1, seconds=_time.time() - t0, loss_history=history,
@@ -308,19 +326,19 @@ class BoxOptimiser:
                                   projected_lanes=self._lanes.count if self._lanes else 0)
 
     def _box_vector(self) -> np.ndarray:
-        b = self.integrator.field.numpy_boxes()
-        return np.concatenate([b["centres"].ravel(), b["sizes"].ravel()])
+        b = self.integrator.boxes()
+        return np.concatenate([b["centre"].ravel(), b["size"].ravel()])
 
     def boxes(self) -> list[Box3D]:
         """Current boxes (optimisation frame, target time), box n labelled with instance perm[n]."""
-        b = self.integrator.field.numpy_boxes()
-        if not (np.all(np.isfinite(b["centres"])) and np.all(np.isfinite(b["sizes"]))
-                and np.all(np.isfinite(b["velocities"]))):
+        b = self.integrator.boxes()
+        if not (np.all(np.isfinite(b["centre"])) and np.all(np.isfinite(b["size"]))
+                and np.all(np.isfinite(b["velocity"]))):
             raise OptimisationError(f"target {self.obs.target}: non-finite box parameters")
         out = []
         for n in range(self.n):
             dyn = bool(self.dynamic[n])
-            out.append(Box3D(b["centres"][n], b["sizes"][n], b["yaws"][n],
-                             b["velocities"][n] if dyn else np.zeros(3), dyn,
+            out.append(Box3D(b["centre"][n], b["size"][n], b["yaw"][n],
+                             b["velocity"][n] if dyn else np.zeros(3), dyn,
                              int(self.obs.instance_ids[self.perm[n]])))
         return out

@@ -2,7 +2,7 @@
 
 The scene frame is the target's optimisation frame (:mod:`vsrd_mi.data.observations`); sensor ``i``
 is frame ``obs.frames[i]`` (id ``frame_%010d``), carries the frame offset as its ray time, and the
-integrator holds the boxes (:func:`vsrd_plugins.sdf.instance_properties`). The same description is
+integrator holds the boxes (:func:`vsrd_plugins.box_properties`). The same description is
 loaded with ``mi.load_dict`` (:func:`load_scene`) or written as Mitsuba XML (:func:`save_scene_xml`).
 """
 
@@ -16,6 +16,7 @@ import numpy as np
 
 import vsrd_mi  # noqa: F401  (selects the Mitsuba variant, registers the plugins)
 import mitsuba as mi
+from vsrd_plugins import box_properties
 
 from ..data.kitti360 import Sequence
 from ..data.observations import ObservationConfig, Observations, load_observations
@@ -39,13 +40,11 @@ def sensor_id(frame: int) -> str:
 
 def integrator_dict(boxes: Seq[Box3D], integrator_type: str = "vsrd_silhouette") -> dict:
     """Integrator description holding ``boxes`` (centre, size, yaw, velocity, dynamic flag)."""
-    from vsrd_plugins.sdf import instance_properties
-
     if not boxes:
         raise ValueError("a scene needs at least one box")
-    props = instance_properties(np.stack([b.centre for b in boxes]), np.stack([b.size for b in boxes]),
-                                np.array([b.yaw for b in boxes]), np.stack([b.velocity for b in boxes]),
-                                np.array([1 if b.dynamic else 0 for b in boxes]))
+    props = box_properties(np.stack([b.centre for b in boxes]), np.stack([b.size for b in boxes]),
+                           np.array([b.yaw for b in boxes]), np.stack([b.velocity for b in boxes]),
+                           np.array([1 if b.dynamic else 0 for b in boxes]))
     return {"type": integrator_type, "id": INTEGRATOR_ID, **props}
 
 

@@ -139,11 +139,19 @@ def colours(world: SynthWorld, mesh: FrameMesh, i: int, points: np.ndarray,
         if len(m):
             local = car.to_local(points[m], i)
             lamps = car.model.lamps
-            local_n = normals[m] @ car.rotation() if lamps is not None else None
+            local_n = outward(normals[m] @ car.rotation(), local - car.model.box_centre) if lamps is not None else None
             out[m] = car_rgb(local, mat[m] - CAR_MATERIAL, np.asarray(car.rgb, dtype=np.float64),
                              np.full(len(m), car.salt, dtype=np.int64), tex, local_n, lamps)
     out *= lambert(normals, tex)[:, None]
     return out
+
+
+def outward(normals: np.ndarray, offsets: np.ndarray) -> np.ndarray:
+    """Face normals turned to point away from the car's centre (``offsets``: the hit points from
+    it): a mesh's winding need not be outward, and the lamps are painted on the faces that face
+    forwards or backwards."""
+    side = np.sign(np.einsum("ij,ij->i", normals, offsets))
+    return normals * np.where(side == 0, 1.0, side)[:, None]
 
 
 def render_view(world: SynthWorld, mesh: FrameMesh, caster: RayCaster, i: int,

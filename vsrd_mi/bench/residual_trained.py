@@ -1,4 +1,4 @@
-"""Does the adaptive sampler keep the issue's bounds on a residual field that has been trained? Per target of the bundled scene, the field after ``vsrd-mi autolabel --set residual=true`` against the same boxes with the untrained field, labels and gradients against the converged reference.
+"""``vsrd-mi bench residual-trained``: does the adaptive sampler keep the issue's bounds on a residual field that has been trained? Per target of the bundled scene, the field after ``vsrd-mi autolabel --set residual=true`` against the same boxes with the untrained field, labels and gradients against the converged reference.
 
 The integrator tests and ``residual_scenes.py`` measure the sampler on residual fields at their
 initialisation (random hypernetwork weights). In use the field is trained on the masks, and a
@@ -22,9 +22,9 @@ labels w.r.t. the box parameters and w.r.t. the residual field's parameters.
 
 Usage::
 
-    python benchmarks/residual_trained.py --frames 8 14 20 --out benchmarks/residual_trained.json
-    python benchmarks/residual_trained.py --save-states runs/trained   # keep the trained fields
-    python benchmarks/residual_trained.py --load-states runs/trained   # a sampler change, same fields
+    vsrd-mi bench residual-trained --frames 8 14 20 --out benchmarks/residual_trained.json
+    vsrd-mi bench residual-trained --save-states runs/trained   # keep the trained fields
+    vsrd-mi bench residual-trained --load-states runs/trained   # a sampler change, same fields
 """
 
 from __future__ import annotations
@@ -35,36 +35,33 @@ from contextlib import contextmanager
 from dataclasses import replace
 from pathlib import Path
 
-import drjit as dr
-import matplotlib
-import mitsuba as mi
 import numpy as np
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
+import drjit as dr
+import mitsuba as mi
 
-from common import BUNDLED, write_results
+from ..autolabel.job import initial_boxes
+from ..data.kitti360 import Sequence, sequence_name
+from ..data.observations import load_observations
+from ..data.selection import SelectionConfig, spec_for_frame
+from ..optimise.config import PRESETS
+from ..optimise.optimiser import BoxOptimiser, RaySampler
+from .measure import central_differences, cosine, fd_steps, labels_and_gradient, reference_grid, weighted_loss, write_results
+from .scenes import BenchConfig, FDSteps
 
-from vsrd_mi.bench.integrator import (BOX_KEYS, central_differences, cosine, labels_and_gradient, reference_grid,
-                                     weighted_loss)
-from vsrd_mi.data.kitti360 import Sequence, sequence_name
-from vsrd_mi.data.observations import load_observations
-from vsrd_mi.data.selection import SelectionConfig, spec_for_frame
-from vsrd_mi.autolabel.job import initial_boxes
-from vsrd_mi.optimise.config import PRESETS
-from vsrd_mi.optimise.optimiser import BoxOptimiser, RaySampler
-
-#: The issue's bounds (adaptive vs the converged integral).
+#: The bounds (adaptive vs the converged integral).
 LABEL_BOUND = 0.01
 GRAD_COSINE_MIN = 0.99
 #: Reference grid spacing: this fraction of 1/s, at most REF_SPACING_MAX_M (as the tests).
 REF_SPACING_S = 0.05
 REF_SPACING_MAX_M = 0.005
-#: Central-difference step of the raw box parameters (1e-3 was too coarse: one raw centre unit is
-#: about 30 m, and a label can bend within 3 cm at s = 10).
-FD_STEP = 1e-4
+#: Central differences of the box parameters move the surfaces by this much (m): a label can bend
+#: within 3 cm at s = 10.
+FD_SURFACE_M = 0.001
 #: Reference samples per chunk of rays (memory of the reference's backward pass).
 REF_CHUNK_SAMPLES = 1 << 20
+#: The bundled example scene (relative to the working directory, as the CLI's other commands).
+BUNDLED = Path("scenes/kitti360-synth")
 
 
 def ray_stretches(boxes: dict, o: np.ndarray, d: np.ndarray, t: np.ndarray, margin: float
@@ -72,9 +69,9 @@ def ray_stretches(boxes: dict, o: np.ndarray, d: np.ndarray, t: np.ndarray, marg
     """Per ray the first entry into and the last exit from any box enlarged by ``margin``
     (slab tests in each box's frame; dynamic boxes at the ray time). Rays that meet none get
     an empty stretch ``[0, 0]``."""
-    c, s = np.cos(boxes["yaws"]), np.sin(boxes["yaws"])
-    centre = boxes["centres"][None] + (boxes["dynamic"][:, None] * boxes["velocities"])[None] * t[:, None, None]
-    half = 0.5 * boxes["sizes"][None] + margin
+    c, s = np.cos(boxes["yaw"]), np.sin(boxes["yaw"])
+    centre = boxes["centre"][None] + (boxes["dynamic"][:, None] * boxes["velocity"])[None] * t[:, None, None]
+    half = 0.5 * boxes["size"][None] + margin
     q, v = o[:, None] - centre, np.broadcast_to(d[:, None], centre.shape)
 
     def local(x):
@@ -99,7 +96,7 @@ def reference_render(it, rays: tuple[np.ndarray, ...], s: float, margin: float):
     spacing ``min(REF_SPACING_S / s, REF_SPACING_MAX_M)`` over each ray's :func:`ray_stretches`
     plus every box's deepest point (:func:`reference_grid`)."""
     o, d, t = rays
-    boxes = it.field.numpy_boxes()
+    boxes = it.boxes()
     lo, hi = ray_stretches(boxes, o, d, t, margin)
     m = int(np.ceil((hi - lo).max() / min(REF_SPACING_S / s, REF_SPACING_MAX_M))) + 2
 
@@ -108,7 +105,7 @@ def reference_render(it, rays: tuple[np.ndarray, ...], s: float, margin: float):
         return it.integrate_at(it.field.decode(), dr.arange(mi.UInt32, b - a),
                                *mi_of(tuple(x[a:b] for x in rays)), ts, mm)
 
-    return render, m + len(boxes["yaws"])
+    return render, m + len(boxes["yaw"])
 
 
 def labels_of(render, n_rays: int, chunk: int, n_inst: int) -> np.ndarray:
@@ -144,12 +141,12 @@ def mi_weights(weights: np.ndarray) -> list[mi.Float]:
 @contextmanager
 def sampler(it, sampling: str):
     """The integrator with its sampling strategy switched to ``sampling`` for a while."""
-    cfg = it.cfg
-    it.cfg = replace(cfg, sampling=sampling)
+    settings = it.settings
+    it.settings = replace(settings, sampling=sampling)
     try:
         yield it
     finally:
-        it.cfg = cfg
+        it.settings = settings
 
 
 def mi_of(rays: tuple[np.ndarray, ...]) -> tuple[mi.Point3f, mi.Vector3f, mi.Float]:
@@ -166,7 +163,7 @@ def measure(it, rays, sharpness: list[float], grad_rays: int, seed: int) -> list
     rows = []
     for s in sharpness:
         it.set_schedule(s, 1.0 / s)
-        margin = float(it._cull_margin()[0])
+        margin = float(it.context().cull_margin()[0])
         ref_render, m = reference_render(it, rays, s, margin)
         chunk = max(1, REF_CHUNK_SAMPLES // m)
         ref = labels_of(ref_render, n_rays, chunk, n_inst)
@@ -193,8 +190,7 @@ def measure(it, rays, sharpness: list[float], grad_rays: int, seed: int) -> list
                 render_now = reference_render(it, sub_rays, s, margin)[0]
                 return float((labels_of(render_now, grad_rays, sub_chunk, n_inst) * w).sum())
 
-            fd = central_differences(it, reference_loss,
-                                     {k: np.full(dr.width(it.field.params[k]), FD_STEP) for k in BOX_KEYS})
+            fd = central_differences(it, reference_loss, fd_steps(n_inst, BenchConfig(fd=FDSteps(surface_m=FD_SURFACE_M))))
             g_box = labels_and_gradient(it, iter([(lambda: it.render_rays(*sub), mi_weights(w))]))[1]
             g_res_ref = residual_gradient(it, sub_render, grad_rays, sub_chunk, w)
             g_res = residual_gradient(it, lambda a, b: it.render_rays(*sub), grad_rays, grad_rays, w)
@@ -211,7 +207,7 @@ def state_name(frame: int) -> str:
 
 
 def run_target(frame: int, args) -> dict:
-    seq = Sequence(BUNDLED, sequence_name(0))
+    seq = Sequence(args.root, sequence_name(0))
     spec = spec_for_frame(seq, frame, SelectionConfig())
     obs = load_observations(seq, spec)
     cfg = PRESETS["default"]().replace(residual=True, steps=args.steps,
@@ -228,7 +224,7 @@ def run_target(frame: int, args) -> dict:
         print(f"frame {frame}: {obs.num_instances} boxes, {steps} steps in {time.time() - t0:.0f} s", flush=True)
         o, d, t, _ = RaySampler(obs, opt.frames, args.rays, seed=args.seed).sample(opt.perm)
         rays = (np.array(o).T.astype(np.float64), np.array(d).T.astype(np.float64), np.array(t).astype(np.float64))
-        boxes = {k: np.array(v) for k, v in it.field.params.items()}
+        boxes = {k: np.array(v) for k, v in it.field.params.items()}  # centre, size, yaw, velocity, dynamic
         trained = {k: np.array(v) for k, v in residual.params.items()}
     else:  # the trained state of an earlier run: the sampler measured on the very same fields
         steps = int(state["steps"])
@@ -251,8 +247,11 @@ def run_target(frame: int, args) -> dict:
     return out
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+def register(subparsers) -> None:
+    ap = subparsers.add_parser("residual-trained", help="vsrd_silhouette on trained residual fields of the bundled "
+                                                        "scene against the converged reference",
+                               description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--root", type=Path, default=BUNDLED, help="the bundled scene")
     ap.add_argument("--frames", type=int, nargs="+", default=[8, 14, 20], help="target frames of the bundled scene")
     ap.add_argument("--steps", type=int, default=PRESETS["default"]().steps, help="optimisation steps")
     ap.add_argument("--rays", type=int, default=2048, help="training-like rays per target")
@@ -265,7 +264,10 @@ def main() -> None:
                     help="measure on the states an earlier --save-states wrote instead of training (training "
                          "runs are not bit-reproducible: this compares samplers on the same fields)")
     ap.add_argument("--out", type=Path, default=Path("benchmarks/residual_trained.json"))
-    args = ap.parse_args()
+    ap.set_defaults(func=main)
+
+
+def main(args: argparse.Namespace) -> int:
     t0 = time.time()
     targets = [run_target(f, args) for f in args.frames]
     summary = summarise(targets, args.sharpness)
@@ -273,6 +275,7 @@ def main() -> None:
     write_results(args.out, __doc__, time.time() - t0, bound=LABEL_BOUND, grad_cosine_min=GRAD_COSINE_MIN,
                   summary=summary, targets=targets)
     write_plot(args.out.with_suffix(".png"), targets)
+    return 0
 
 
 def summarise(targets: list[dict], sharpness: list[float]) -> dict:
@@ -295,6 +298,10 @@ def summarise(targets: list[dict], sharpness: list[float]) -> dict:
 
 def write_plot(path: Path, targets: list[dict]) -> None:
     """Largest label error per target and sharpness, adaptive and dense, per field."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
     fig, axes = plt.subplots(1, 2, figsize=(11, 4), sharey=True)
     for ax, name in zip(axes, ("trained", "untrained")):
         labels, adaptive, dense = [], [], []
@@ -314,7 +321,4 @@ def write_plot(path: Path, targets: list[dict]) -> None:
     axes[0].legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
-
-
-if __name__ == "__main__":
-    main()
+    plt.close(fig)
