@@ -869,7 +869,7 @@ def sine_cell_scan(cell: int, amp: float, slope: float, kink_between: tuple[int,
     amplitude ``amp`` across the cell of nominal sample ``cell``. Returns ``moved(kinks)`` (the
     first ray's moved positions, :func:`snapped_positions`), the sine cell's two extrema of
     ``F``, its width and the kink (``None`` without one)."""
-    it = make({"centre": np.array([[0.0, 0.0, 10.0]]), "size": np.array([[1.8, 1.5, 4.2]]),
+    make({"centre": np.array([[0.0, 0.0, 10.0]]), "size": np.array([[1.8, 1.5, 4.2]]),
                "yaw": np.zeros(1)}, residual=True)
     k, a, b = 6, 0.0, 6.0
     nominal = [float(np.array(sub_sample(mi.Float(a), mi.Float(b), i, k))[0]) for i in range(k + 1)]
@@ -930,7 +930,7 @@ def test_moved_samples_sit_on_skewed_extrema():
     residual field's): the moved sample lands on it within 2 % of the cell, its value within
     0.02 of the minimum (:meth:`_refined_extrema`'s golden-section steps; the vertex of the
     parabola through the three scan points, the code before, a quarter of a cell off, 0.14 above)."""
-    it = make({"centre": np.array([[0.0, 0.0, 10.0]]), "size": np.array([[1.8, 1.5, 4.2]]),
+    make({"centre": np.array([[0.0, 0.0, 10.0]]), "size": np.array([[1.8, 1.5, 4.2]]),
                "yaw": np.zeros(1)}, residual=True)
     k, a, b = 6, 0.0, 6.0
     lo, hi = [float(np.array(sub_sample(mi.Float(a), mi.Float(b), i, k))[0]) for i in (3, 4)]
@@ -961,7 +961,7 @@ def test_moved_samples_see_a_maximum_before_a_kink():
     with the kink's value standing in for the scan point beyond it the maximum is an extremum
     and gets a sample (within a tenth of the cell), and the kink one exactly
     (:func:`snapped_positions`; without the kink neither)."""
-    it = make({"centre": np.array([[0.0, 0.0, 10.0]]), "size": np.array([[1.8, 1.5, 4.2]]),
+    make({"centre": np.array([[0.0, 0.0, 10.0]]), "size": np.array([[1.8, 1.5, 4.2]]),
                "yaw": np.zeros(1)}, residual=True)
     k, a, b = 6, 0.0, 6.0
     lo, hi = [float(np.array(sub_sample(mi.Float(a), mi.Float(b), i, k))[0]) for i in (3, 4)]
