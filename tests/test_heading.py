@@ -193,3 +193,29 @@ def test_red_rear_lamps_tell_the_front_and_red_paint_does_not(target):
     assert decision.source == "lamps" and decision.turned
     painted = lamp_painted_images(obs, n, box, everywhere=True)
     assert lamp_evidence(box, n, obs, painted) == (0.0, 0)
+
+
+#: A parked car of the bundled scene that target 14's frames see head-on, from its front.
+SEEN_FROM_THE_FRONT = 26001
+
+
+def test_an_end_seen_head_on_without_red_is_the_front(target):
+    """Every rear carries red lamps: an end that faces the camera, is large enough to show them and
+    shows none is the front. With rear lamps painted the bare ends agree with the lamps; on grey
+    images (no lamp anywhere) they decide where the silhouettes do not, and turn a backwards box."""
+    from vsrd_mi.optimise.heading import bare_end_evidence, lamp_evidence
+
+    obs, truth = target
+    n = int(np.flatnonzero(obs.instance_ids == SEEN_FROM_THE_FRONT)[0])
+    box = truth[SEEN_FROM_THE_FRONT]
+    lamps = lamp_painted_images(obs, n, box, everywhere=False)
+    forward, views = bare_end_evidence(box, n, obs, lamps)
+    assert views >= 2 and forward == 1.0 and bare_end_evidence(turned(box), n, obs, lamps)[0] == -1.0
+    W, H = obs.image_size
+    grey = [np.full((H, W, 3), 120, np.uint8) for _ in range(obs.num_frames)]
+    assert lamp_evidence(turned(box), n, obs, grey) == (0.0, 0)
+    no_silhouettes = HeadingConfig(min_evidence=1.0)  # silhouette IoUs never differ by 1
+    decision = decide_heading(turned(box), n, obs, no_silhouettes, grey)
+    assert decision.source == "bare ends" and decision.turned
+    off = decide_heading(turned(box), n, obs, dataclasses.replace(no_silhouettes, bare_ends=False), grey)
+    assert off.source == "kept" and not off.turned

@@ -218,7 +218,10 @@ class HeadingConfig:
     min_mask_pixels: int = 200
     #: Look at the lamps' colour too (red at the rear; :func:`vsrd_mi.optimise.heading.lamp_evidence`).
     lamps: bool = True
-    #: The lamps decide when at least this many frames showed a lamped end ...
+    #: Where neither the lamps nor the silhouettes decide, an end seen head-on without red is a
+    #: front ("bare ends", :func:`vsrd_mi.optimise.heading.bare_end_evidence`).
+    bare_ends: bool = True
+    #: The lamps (or bare ends) decide when at least this many frames showed a lamped (bare) end ...
     min_lamp_views: int = 2
     #: ... and the lamped rears outnumber the lamped fronts (or the reverse) by this share of them.
     min_lamp_evidence: float = 0.5

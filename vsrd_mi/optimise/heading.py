@@ -16,7 +16,12 @@ where the instance is seen, and compares them with the instance's masks:
 A second cue is colour: rear lamps are red, front lamps white or amber. Frame by frame, an end of
 the box (its rear or front fifth) looks lamped when a lamp's share of its visible pixels is red
 (:func:`lamp_evidence`); where the lamped ends agree on which is the rear, the lamps decide, before
-the silhouettes (a red car's paint covers most of both ends and leaves it to them).
+the silhouettes (a red car's paint covers most of both ends and leaves it to them). The same
+reading says more: every car's rear carries red lamps, so an end seen nearly head-on, large enough
+to show them, and without any red is its front (:func:`bare_end_evidence`: a car seen only from
+the front). Bare ends are the weakest cue (a rear too far or too dark to show red, or a box whose
+axis is wrong, votes wrongly; on the development set about three votes in four were right) and
+decide only where the silhouettes cannot.
 
 Where the evidence is weaker than that (a car seen end-on only, or too small), an optional,
 documented prior decides (``HeadingConfig.prior``: which way parked cars usually face on each side
@@ -51,6 +56,12 @@ RED_RATIO = 2.2
 LAMP_SHARE = (0.01, 0.3)
 #: An end takes part in a frame when at least this many of its pixels are visible.
 MIN_END_PIXELS = 30
+#: An end counts as bare (no lamp red) only when it faces the camera within 60 degrees of head-on
+#: (the cosine between its outward normal and the direction to the camera is at least this) ...
+BARE_FACING_COS = 0.5
+#: ... and shows at least this many pixels: a lamp pair's smallest share (LAMP_SHARE[0]) is then
+#: three pixels or more.
+MIN_BARE_END_PIXELS = 300
 
 
 @dataclass(frozen=True)
@@ -58,11 +69,13 @@ class HeadingDecision:
     """Outcome for one box: the box to keep, and why."""
 
     box: Box3D
-    #: Mean-IoU advantage of the box's own heading over the opposite one (before any turn).
+    #: Evidence for the box's own heading over the opposite one (before any turn): the vote share of
+    #: the lamps or bare ends, or the silhouettes' mean-IoU advantage.
     evidence: float
     #: Frames that took part.
     views: int
-    #: ``"silhouette"``, ``"prior"``, ``"kept"`` (no evidence, no prior) or ``"moving"``.
+    #: ``"lamps"``, ``"bare ends"``, ``"silhouette"``, ``"prior"``, ``"kept"`` (no evidence, no
+    #: prior) or ``"moving"``.
     source: str
     #: Whether the box was turned by 180 degrees.
     turned: bool
@@ -155,15 +168,13 @@ def lamp_red(image: np.ndarray) -> np.ndarray:
     return (r > RED_MIN) & (r > RED_RATIO * g) & (r > RED_RATIO * b)
 
 
-def lamp_evidence(box: Box3D, n: int, obs: Observations, images: list[np.ndarray | None],
-                  min_mask_pixels: int = HeadingConfig.min_mask_pixels) -> tuple[float, int]:
-    """``(evidence, views)``: over the frames whose image is given and whose mask has at least
-    ``min_mask_pixels`` pixels, each end of the box (its rear and front fifth) that shows at least
-    :data:`MIN_END_PIXELS` mask pixels looks lamped when :data:`LAMP_SHARE` of them are lamp red
-    (a lamp's share of an end; red paint covers more and is left out). The evidence is the views
-    with a lamped rear minus those with a lamped front, over both (positive: the box faces its yaw);
-    ``views`` counts the lamped ends."""
-    rear = front = 0
+def end_readings(box: Box3D, n: int, obs: Observations, images: list[np.ndarray | None],
+                 min_mask_pixels: int = HeadingConfig.min_mask_pixels) -> list[tuple[int, int, float, float]]:
+    """Per frame whose image is given and whose mask has at least ``min_mask_pixels`` pixels, per
+    end of the box (0: its rear, 1: its front fifth, for ``box.yaw``) that shows at least
+    :data:`MIN_END_PIXELS` mask pixels of its own: ``(end, pixels, red share, facing)``, where
+    ``facing`` is the cosine between the end's outward normal and the direction to the camera."""
+    readings = []
     for f in range(obs.num_frames):
         mask_full = obs.masks[f, n]
         if images[f] is None or np.count_nonzero(mask_full) < min_mask_pixels:
@@ -177,16 +188,45 @@ def lamp_evidence(box: Box3D, n: int, obs: Observations, images: list[np.ndarray
         ends = [rasterise_template(t, moved, w2c, obs.K[f], roi) for t in (REAR_END, FRONT_END)]
         if ends[0] is None or ends[1] is None:
             continue
+        camera = obs.cam_to_opt[f][:3, 3]
+        forward = np.asarray(moved.heading, dtype=float)
         for k, (own, other) in enumerate(((ends[0], ends[1]), (ends[1], ends[0]))):
             region = mask & own & ~other
             pixels = np.count_nonzero(region)
             if pixels < MIN_END_PIXELS:
                 continue
-            share = np.count_nonzero(red & region) / pixels
-            if LAMP_SHARE[0] <= share <= LAMP_SHARE[1]:
-                rear, front = (rear + 1, front) if k == 0 else (rear, front + 1)
+            normal = forward if k == 1 else -forward
+            to_camera = camera - (np.asarray(moved.centre) + normal * moved.size[2] / 2)
+            facing = float(normal @ to_camera / max(np.linalg.norm(to_camera), 1e-9))
+            readings.append((k, pixels, np.count_nonzero(red & region) / pixels, facing))
+    return readings
+
+
+def _votes(rear: int, front: int) -> tuple[float, int]:
     total = rear + front
     return ((rear - front) / total if total else 0.0), int(total)
+
+
+def lamp_evidence(box: Box3D, n: int, obs: Observations, images: list[np.ndarray | None],
+                  min_mask_pixels: int = HeadingConfig.min_mask_pixels) -> tuple[float, int]:
+    """``(evidence, views)``: an end read by :func:`end_readings` looks lamped when
+    :data:`LAMP_SHARE` of its pixels are lamp red (a lamp's share of an end; red paint covers more
+    and is left out). The evidence is the views with a lamped rear minus those with a lamped
+    front, over both (positive: the box faces its yaw); ``views`` counts the lamped ends."""
+    lamped = [k for k, _, share, _ in end_readings(box, n, obs, images, min_mask_pixels)
+              if LAMP_SHARE[0] <= share <= LAMP_SHARE[1]]
+    return _votes(lamped.count(0), lamped.count(1))
+
+
+def bare_end_evidence(box: Box3D, n: int, obs: Observations, images: list[np.ndarray | None],
+                      min_mask_pixels: int = HeadingConfig.min_mask_pixels) -> tuple[float, int]:
+    """``(evidence, views)`` of bare ends: an end read by :func:`end_readings` that faces the camera
+    (:data:`BARE_FACING_COS`), shows :data:`MIN_BARE_END_PIXELS` or more and has less than
+    :data:`LAMP_SHARE`'s lower bound of lamp red is taken for the front. The evidence is the views
+    with a bare front minus those with a bare rear, over both (positive: the box faces its yaw)."""
+    bare = [k for k, pixels, share, facing in end_readings(box, n, obs, images, min_mask_pixels)
+            if facing >= BARE_FACING_COS and pixels >= MIN_BARE_END_PIXELS and share < LAMP_SHARE[0]]
+    return _votes(bare.count(1), bare.count(0))
 
 
 def decide_heading(box: Box3D, n: int, obs: Observations, cfg: HeadingConfig,
@@ -195,16 +235,21 @@ def decide_heading(box: Box3D, n: int, obs: Observations, cfg: HeadingConfig,
     ``images``: the frames' left images (RGB), for the lamps (None: silhouettes only)."""
     if box.dynamic:
         return HeadingDecision(box, 0.0, 0, "moving", False)
+    if images:
+        votes, seen = lamp_evidence(box, n, obs, images, cfg.min_mask_pixels)
+        if seen >= cfg.min_lamp_views and abs(votes) >= cfg.min_lamp_evidence:
+            return HeadingDecision(turned(box) if votes < 0 else box, float(votes), seen, "lamps", bool(votes < 0))
     fwd, bwd, views = heading_scores(box, n, obs, min_mask_pixels=cfg.min_mask_pixels)
     evidence = fwd - bwd
-    lamps, red = lamp_evidence(box, n, obs, images, cfg.min_mask_pixels) if images else (0.0, 0)
-    if red >= cfg.min_lamp_views and abs(lamps) >= cfg.min_lamp_evidence:
-        return HeadingDecision(turned(box) if lamps < 0 else box, float(lamps), views, "lamps", bool(lamps < 0))
     if abs(evidence) > cfg.min_evidence:
-        turn, source = bool(evidence < 0), "silhouette"
-    else:
-        faces = prior_faces_yaw(box, cfg.prior)
-        turn, source = (False, "kept") if faces is None else (not faces, "prior")
+        return HeadingDecision(turned(box) if evidence < 0 else box, evidence, views, "silhouette", bool(evidence < 0))
+    if images and cfg.bare_ends:
+        votes, seen = bare_end_evidence(box, n, obs, images, cfg.min_mask_pixels)
+        if seen >= cfg.min_lamp_views and abs(votes) >= cfg.min_lamp_evidence:
+            return HeadingDecision(turned(box) if votes < 0 else box, float(votes), seen, "bare ends",
+                                   bool(votes < 0))
+    faces = prior_faces_yaw(box, cfg.prior)
+    turn, source = (False, "kept") if faces is None else (not faces, "prior")
     return HeadingDecision(turned(box) if turn else box, evidence, views, source, turn)
 
 
