@@ -15,14 +15,19 @@ adds the residual shape field and the 2D-box projection loss). Writes ``before.p
 import argparse
 from pathlib import Path
 
+import drjit as dr
+import mitsuba as mi
 import numpy as np
 
 import vsrd_mi  # noqa: F401  (selects the Mitsuba variant, registers the plugins)
-import drjit as dr
-import mitsuba as mi
-
+from vsrd_mi.autolabel.visualise import (
+    box_colours,
+    colourise,
+    downscaled_masks,
+    scaled_intrinsics,
+    scaled_size,
+)
 from vsrd_mi.data.kitti360 import Sequence
-from vsrd_mi.export.visualise import box_colours, colourise, downscaled_masks, scaled_intrinsics, scaled_size
 from vsrd_mi.geometry.boxes import Box3D
 from vsrd_mi.geometry.iou3d import iou3d
 from vsrd_mi.optimise.losses import binary_cross_entropy, mean, to_float

@@ -10,17 +10,21 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-
 from test_kitti360_loader import SEQ, H, W, make_dataset
 
-from vsrd_mi.data.kitti360 import (CAR_KITTI_ID, Sequence, read_calibration, read_cam0_to_world,
-                                   read_world_boxes)
 from vsrd_mi.batch import atomic
 from vsrd_mi.data import kitti360_write as kw
+from vsrd_mi.data.kitti360 import (
+    CAR_KITTI_ID,
+    Sequence,
+    read_calibration,
+    read_cam0_to_world,
+    read_world_boxes,
+)
+from vsrd_mi.data.kitti_labels import parse_label_line, write_labels
 from vsrd_mi.data.observations import load_observations
 from vsrd_mi.data.selection import SelectionConfig, select_targets, spec_for_frame
 from vsrd_mi.errors import DataError
-from vsrd_mi.export.kitti_labels import parse_label_line, write_labels
 
 FRAMES = [0, 1, 2, 3]
 

@@ -17,13 +17,29 @@ import numpy as np
 import pytest
 
 import vsrd_mi  # noqa: F401
+from vsrd_mi.autolabel.consensus import (
+    apply_consensus,
+    axis_mean,
+    fuse_boxes,
+    labels_in_frame,
+    weighted_median,
+)
 from vsrd_mi.data.kitti360 import Sequence
+from vsrd_mi.data.kitti_labels import (
+    box_from_label,
+    parse_label_line,
+    read_labels,
+    write_labels,
+)
 from vsrd_mi.data.observations import opt_from_world
 from vsrd_mi.data.selection import SelectionConfig, select_targets
-from vsrd_mi.export.kitti_labels import box_from_label, parse_label_line, read_labels, write_labels
 from vsrd_mi.geometry.boxes import Box3D
-from vsrd_mi.optimise.config import AutolabelConfig, ConsensusConfig, default_config, paper_config
-from vsrd_mi.autolabel.consensus import apply_consensus, axis_mean, fuse_boxes, labels_in_frame, weighted_median
+from vsrd_mi.optimise.config import (
+    AutolabelConfig,
+    ConsensusConfig,
+    default_config,
+    paper_config,
+)
 
 ROOT = Path(__file__).resolve().parents[1] / "scenes" / "kitti360-synth"
 #: Per-target perturbations of parked cars, cycled; every pair / triple of consecutive ones cancels

@@ -11,14 +11,27 @@ import numpy as np
 import pytest
 
 from vsrd_mi.cli import main
+from vsrd_mi.data.kitti_labels import label_from_box, write_labels
 from vsrd_mi.errors import DataError
 from vsrd_mi.evaluate.ap import average_precision, devkit_thresholds
-from vsrd_mi.evaluate.attributes import ATTRIBUTES_FORMAT, CarAttributes, read_attributes
-from vsrd_mi.evaluate.matching import FrameMatchInput, count_at_threshold, orientation_similarity
+from vsrd_mi.evaluate.attributes import (
+    ATTRIBUTES_FORMAT,
+    CarAttributes,
+    read_attributes,
+)
+from vsrd_mi.evaluate.matching import (
+    FrameMatchInput,
+    count_at_threshold,
+    orientation_similarity,
+)
 from vsrd_mi.evaluate.metrics import hungarian_pairs, yaw_error_mod_pi
-from vsrd_mi.evaluate.sequence import (EvalConfig, FrameBoxes, evaluate_frames, evaluate_sequence,
-                                       observation_angles)
-from vsrd_mi.export.kitti_labels import label_from_box, write_labels
+from vsrd_mi.evaluate.sequence import (
+    EvalConfig,
+    FrameBoxes,
+    evaluate_frames,
+    evaluate_sequence,
+    observation_angles,
+)
 from vsrd_mi.geometry.boxes import Box3D
 from vsrd_mi.geometry.camera import box_to_2d
 from vsrd_mi.geometry.iou3d import iou_matrices

@@ -17,14 +17,37 @@ import numpy as np
 import pytest
 
 from vsrd_mi.cli import main
-from vsrd_mi.data.kitti360 import Sequence, read_calibration, read_world_boxes, sequence_name
+from vsrd_mi.data.kitti360 import (
+    Sequence,
+    read_calibration,
+    read_world_boxes,
+    sequence_name,
+)
+from vsrd_mi.data.kitti_labels import (
+    box_from_label,
+    label_from_box,
+    read_labels,
+    write_labels,
+)
 from vsrd_mi.data.labels import CAR_KITTI_ID, car_instance_value
 from vsrd_mi.data.masks import tight_box
 from vsrd_mi.errors import DataError
-from vsrd_mi.export.calib import CALIB_KEYS, VELO_TO_CAM, calib_for_frame, imu_to_camera, read_calib, write_calib
+from vsrd_mi.export.calib import (
+    CALIB_KEYS,
+    VELO_TO_CAM,
+    calib_for_frame,
+    imu_to_camera,
+    read_calib,
+    write_calib,
+)
 from vsrd_mi.export.dataset import ExportConfig, collect_frames, export_dataset
-from vsrd_mi.export.kitti_labels import box_from_label, label_from_box, read_labels, write_labels
-from vsrd_mi.export.level import apply_homography, level_box, level_homography, level_image, level_rotation
+from vsrd_mi.export.level import (
+    apply_homography,
+    level_box,
+    level_homography,
+    level_image,
+    level_rotation,
+)
 from vsrd_mi.export.report import ReportConfig, write_report
 from vsrd_mi.geometry.boxes import Box3D
 from vsrd_mi.geometry.boxes2d import iou_matrix

@@ -8,10 +8,17 @@ import os
 import numpy as np
 import pytest
 
+from vsrd_mi.data.kitti_labels import (
+    DEFAULT_DECIMALS,
+    KittiLabel,
+    box_from_label,
+    format_label_line,
+    label_from_box,
+    parse_label_line,
+    read_labels,
+    write_labels,
+)
 from vsrd_mi.errors import DataError
-from vsrd_mi.export.kitti_labels import (DEFAULT_DECIMALS, KittiLabel, box_from_label,
-                                         format_label_line, label_from_box, parse_label_line,
-                                         read_labels, write_labels)
 from vsrd_mi.geometry.boxes import Box3D, wrap_angle
 
 # A line from the KITTI object benchmark's training labels (000000.txt is a pedestrian; this is a car).

@@ -13,17 +13,16 @@ import math
 import os
 from dataclasses import dataclass
 
-import numpy as np
-import pytest
-
-import vsrd_mi  # noqa: F401  (selects the Mitsuba variant, registers the plugins)
 import drjit as dr
 import mitsuba as mi
-
+import numpy as np
+import pytest
 from vsrd_plugins import box_properties
 from vsrd_plugins.sdf import InstanceField, ResidualField
 from vsrd_plugins.silhouette import VSRDSilhouetteIntegrator
-from vsrd_mi.export.kitti_labels import label_from_box, write_labels
+
+import vsrd_mi  # noqa: F401  (selects the Mitsuba variant, registers the plugins)
+from vsrd_mi.data.kitti_labels import label_from_box, write_labels
 from vsrd_mi.geometry import boxes2d
 from vsrd_mi.geometry.boxes import Box3D
 from vsrd_mi.optimise import losses

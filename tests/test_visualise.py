@@ -1,4 +1,4 @@
-"""Visual outputs of ``vsrd-mi autolabel --vis`` (vsrd_mi.export.visualise)."""
+"""Visual outputs of ``vsrd-mi autolabel --vis`` (vsrd_mi.autolabel.visualise)."""
 
 from __future__ import annotations
 
@@ -6,23 +6,22 @@ import json
 from pathlib import Path
 
 import cv2
+import mitsuba as mi
 import numpy as np
 import pytest
 import trimesh
 from skimage.measure import label as connected_components
+from vsrd_plugins import box_properties
 
 import vsrd_mi  # noqa: F401
-import mitsuba as mi
-
-from vsrd_plugins import box_properties
+from vsrd_mi.autolabel import visualise as V
+from vsrd_mi.autolabel.job import process_target
 from vsrd_mi.batch.tasks import TargetTask
 from vsrd_mi.data.kitti360 import Sequence
 from vsrd_mi.data.observations import load_observations
 from vsrd_mi.data.selection import SelectionConfig, select_targets
-from vsrd_mi.export import visualise as V
 from vsrd_mi.geometry.boxes import Box3D
 from vsrd_mi.geometry.camera import NEAR_PLANE, project
-from vsrd_mi.autolabel.job import process_target
 from vsrd_mi.optimise.config import default_config
 from vsrd_mi.optimise.optimiser import BoxOptimiser
 from vsrd_mi.scene.initial import default_initial_boxes

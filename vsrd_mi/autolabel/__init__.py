@@ -1,2 +1,3 @@
-"""The autolabeling job: one target frame end to end (:mod:`.job`), the consensus of parked cars
-over a sequence (:mod:`.consensus`) and ``vsrd-mi autolabel`` (:mod:`.cli`)."""
+"""The autolabeling job: one target frame end to end (:mod:`.job`) with its ``--vis`` figures
+(:mod:`.visualise`), the consensus of parked cars over a sequence (:mod:`.consensus`) and
+``vsrd-mi autolabel`` (:mod:`.cli`)."""

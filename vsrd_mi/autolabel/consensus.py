@@ -44,10 +44,10 @@ import numpy as np
 
 from ..batch.atomic import atomic_write_json
 from ..data.kitti360 import Sequence
+from ..data.kitti_labels import KittiLabel, label_from_box, write_labels
 from ..data.masks import tight_box
 from ..data.observations import opt_from_world
 from ..errors import DataError
-from ..export.kitti_labels import KittiLabel, label_from_box, write_labels
 from ..geometry.boxes import Box3D
 from ..geometry.boxes2d import iou_matrix
 from ..geometry.camera import box_to_2d

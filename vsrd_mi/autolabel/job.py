@@ -23,19 +23,19 @@ from scipy.optimize import linear_sum_assignment
 from ..batch.atomic import atomic_write_json
 from ..batch.tasks import TargetResult, TargetTask
 from ..data.kitti360 import Sequence
+from ..data.kitti_labels import write_labels
 from ..data.observations import Observations, footprint_in_frame, load_observations
 from ..data.selection import SelectionConfig, spec_for_frame
-from ..export.kitti_labels import write_labels
-from ..export.visualise import write_visuals
 from ..geometry.boxes import Box3D
 from ..geometry.boxes2d import iou_matrix
 from ..init.sequence import initialise_target
-from ..optimise.config import PRESETS, AutolabelConfig
 from ..optimise.axis import choose_yaws
+from ..optimise.config import PRESETS, AutolabelConfig
 from ..optimise.heading import decide_headings
 from ..optimise.optimiser import BoxOptimiser
 from ..scene.initial import default_initial_boxes
 from .consensus import labels_in_frame
+from .visualise import write_visuals
 
 
 def confidence(boxes: list[Box3D], obs: Observations) -> np.ndarray:

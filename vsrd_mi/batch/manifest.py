@@ -86,7 +86,7 @@ def default_output_checks() -> dict[str, OutputCheck]:
     """Parsers used to validate outputs by suffix: strict JSON, UTF-8 text, ``.npy``, ``.npz``.
 
     Files with other suffixes are checked by size and SHA-256 only. Pass a mapping with more
-    (or stricter) entries, e.g. ``{".txt": vsrd_mi.export.kitti_labels.read_labels}``, to
+    (or stricter) entries, e.g. ``{".txt": vsrd_mi.data.kitti_labels.read_labels}``, to
     :func:`vsrd_mi.batch.run_batch` through :class:`vsrd_mi.batch.BatchConfig`.
     """
     return {".json": _check_json, ".txt": _check_text, ".npy": _check_npy, ".npz": _check_npz}

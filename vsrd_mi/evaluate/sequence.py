@@ -41,8 +41,8 @@ from typing import Iterable, Sequence
 import numpy as np
 
 from ..data.kitti360 import Sequence as KittiSequence
+from ..data.kitti_labels import CAR, box_from_label, observation_angle, read_labels
 from ..errors import DataError
-from ..export.kitti_labels import CAR, box_from_label, observation_angle, read_labels
 from ..geometry.boxes import Box3D, kitti_ry_from_yaw
 from ..geometry.camera import box_to_2d
 from ..geometry.iou3d import iou_matrices

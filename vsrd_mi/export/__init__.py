@@ -1,7 +1,6 @@
-"""vsrd-mi export stage: labels out of the pipeline and into a detector's hands.
+"""vsrd-mi export stage: labels out of the pipeline and into a detector's hands (the label files
+themselves: :mod:`vsrd_mi.data.kitti_labels`).
 
-* :mod:`.kitti_labels` - KITTI label files (parse, format, write, box conversion);
-* :mod:`.visualise` - the ``autolabel --vis`` figures of one optimised target;
 * :mod:`.calib` - KITTI calib files of exported frames;
 * :mod:`.level` - level cameras: the image warp and exact labels for a pitched camera;
 * :mod:`.dataset` - ``vsrd-mi export-dataset``: runs -> the KITTI object-detection layout;

@@ -31,11 +31,17 @@ from typing import Sequence
 import cv2
 import numpy as np
 
-from ..data.kitti360 import Calibration, frame_file, image_dir, read_calibration, read_cam0_to_world
+from ..data.kitti360 import (
+    Calibration,
+    frame_file,
+    image_dir,
+    read_calibration,
+    read_cam0_to_world,
+)
+from ..data.kitti_labels import KittiLabel, read_labels, write_labels
 from ..data.png import read_png
 from ..errors import DataError
 from .calib import calib_for_frame, write_calib
-from .kitti_labels import KittiLabel, read_labels, write_labels
 from .level import level_image, level_labels, level_rotation, pitch_roll_deg
 
 #: Label files of a run: the frame index, zero-padded to 10 digits.

@@ -31,10 +31,10 @@ from typing import Iterable, Sequence
 import cv2
 import numpy as np
 
+from ..data.kitti_labels import KittiLabel, box_from_label, label_from_box
 from ..data.observations import WORLD_UP
 from ..geometry.boxes import Box3D, yaw_from_direction
 from ..geometry.camera import box_to_2d
-from .kitti_labels import KittiLabel, box_from_label, label_from_box
 
 #: A camera whose down direction is further than this from its own y axis (cosine) is not a road
 #: camera looking roughly level; "level" is then not defined by turning it (60 degrees).
@@ -76,7 +76,7 @@ def level_image(image: np.ndarray, K: np.ndarray, R: np.ndarray, nearest: bool =
 
 
 def level_box(box_cam: Box3D, R: np.ndarray) -> Box3D:
-    """The box of a camera-frame label (:func:`~vsrd_mi.export.kitti_labels.box_from_label`)
+    """The box of a camera-frame label (:func:`~vsrd_mi.data.kitti_labels.box_from_label`)
     in the level camera of rotation ``R``.
 
     The label's box stands along the camera's y axis; the true box stands along the level

@@ -30,6 +30,7 @@ from typing import Sequence
 
 import numpy as np
 
+from ..autolabel.visualise import VisualConfig
 from ..data.kitti360 import Sequence as KittiSequence
 from ..errors import DataError
 from ..evaluate.metrics import hungarian_pairs
@@ -37,7 +38,6 @@ from ..evaluate.sequence import evaluate_sequence
 from ..geometry.boxes import Box3D
 from .dataset import run_sequence_dirs
 from .report_render import ground_truth_in_opt, render_target
-from .visualise import VisualConfig
 
 #: The report's folder inside the run, and its page.
 REPORT_DIR, REPORT_PAGE = "report", "index.html"

@@ -17,11 +17,21 @@ import cv2
 import numpy as np
 
 from ..autolabel.consensus import TargetBoxes
+from ..autolabel.visualise import (
+    VisualConfig,
+    box_captions,
+    box_colours,
+    contact_sheet,
+    draw_bev,
+    draw_projected_boxes,
+    put_text,
+    scaled_intrinsics,
+    scaled_size,
+    write_png,
+)
 from ..data.kitti360 import Sequence as KittiSequence
 from ..data.observations import opt_from_world
 from ..geometry.boxes import Box3D
-from .visualise import (VisualConfig, box_captions, box_colours, contact_sheet, draw_bev, draw_projected_boxes,
-                        put_text, scaled_intrinsics, scaled_size, write_png)
 
 
 def opt_to_camera(seq: KittiSequence, target: int, frame: int) -> np.ndarray:
