@@ -1,4 +1,4 @@
-"""Numerical stress suite (issue #7): random boxes and cameras through both integrators.
+"""Numerical stress suite: random boxes and cameras through both integrators.
 
 Every hypothesis example is one scene of :data:`N_INST` boxes and :data:`CAMERAS` cameras of
 :data:`RAYS_PER_CAMERA` rays each; a camera with its rays is one *case*, and the rays of all

@@ -120,7 +120,7 @@ class VelocityConfig:
     #: two neighbours and point-count weights only (and the outlier centre weighted, as it was),
     #: parked cars 26-58 m ahead came out at 1.9-5.0 m/s from their consecutive pairs and were
     #: labelled moving: 4 of the 177 target instances of the six 4 + 2 sequences and the bundled
-    #: scene. ``benchmarks/dynamic_flags.json`` (unweighted outlier centre throughout): two
+    #: scene. Measured on them (unweighted outlier centre throughout): two
     #: neighbours 2 wrong (1 with the t test of ``significance``), four neighbours 0; the gap
     #: weights then lower the moving cars' speed error median from 0.41 to 0.35 m/s and the
     #: parked cars' apparent speed p90 from 0.64 to 0.28 m/s. docs/method.md §6 (and the authors'
@@ -152,7 +152,7 @@ class VelocityConfig:
     #: speed of a parked car is far from 0: between two views the visible surface changes (rear,
     #: then side) and stereo depth at 10-30 m is uncertain by decimetres, so parked cars show
     #: apparent speeds of a few tenths of m/s. 1.5 m/s (5.4 km/h, walking pace) sits above that
-    #: noise and below the speed of cars in traffic; see ``benchmarks/init_accuracy.py``.
+    #: noise and below the speed of cars in traffic (``vsrd-mi bench init-accuracy``).
     dynamic_speed_threshold: float = 1.5
     #: ... and the velocity must be significantly away from zero: this many standard errors
     #: (spread of the pair estimates, :func:`vsrd_mi.init.attributes.robust_weighted_mean`) when
