@@ -217,6 +217,28 @@ def test_yaw_from_l_shape_and_single_face(yaw_deg):
     assert abs(np.degrees(err)) < 3.0
 
 
+@pytest.mark.parametrize("yaw_deg", [90.0, 80.0, -85.0])
+def test_a_car_across_the_road_whose_cloud_is_shorter_than_a_car_keeps_its_length_axis(yaw_deg):
+    """A car parked across the road whose cloud covers its end and the first 2.2 m of its side (no
+    extent reaches ``length_evidence``): the longer extent is its length, not the road's
+    direction; the cloud of its end face alone is one face and leaves it to the road prior."""
+    from vsrd_mi.init.attributes import length_axis_seen
+
+    rng = np.random.default_rng(8)
+    cfg = OrientationConfig()
+    box = Box3D([6.0, 0.8, 15.0], CAR, np.radians(yaw_deg))
+    end_and_side = box_surface(box, 1500, rng, 0.05, faces=(0, 4))        # -x side, -z end
+    local = (end_and_side - box.centre) @ box.rotation
+    part = end_and_side[local[:, 2] < -CAR[2] / 2 + 2.2]                  # the side's first 2.2 m
+    yaw = dominant_yaw(part, cfg)
+    assert abs(np.degrees(wrap_angle(2 * (yaw - box.yaw)) / 2)) < 3.0
+    assert length_axis_seen(part, yaw, cfg)
+    end = box_surface(box, 800, rng, 0.05, faces=(4,))
+    yaw = dominant_yaw(end, cfg)
+    across = wrap_angle(2 * (yaw - box.yaw - np.pi / 2)) / 2    # the face's own direction, nearer the road
+    assert abs(np.degrees(across)) < 3.0 and not length_axis_seen(end, yaw, cfg)
+
+
 # ------------------------------------------------------------------------------- location
 
 def test_location_sign_convention():

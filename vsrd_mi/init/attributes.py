@@ -343,12 +343,21 @@ def _refine_rectangle_angle(xz: np.ndarray, psi: float, cfg: OrientationConfig) 
     return psi
 
 
+def extents_show_length(extents: list[float], cfg: OrientationConfig) -> bool:
+    """Whether a cloud's footprint extents along two rectangle axes tell which is the length (the
+    larger one): one exceeds ``cfg.length_evidence`` (no car is that wide), or they differ by more
+    than ``cfg.extent_margin`` and the cloud is no single face (both exceed ``cfg.face_depth``)."""
+    longest, shortest = max(extents), min(extents)
+    return longest > cfg.length_evidence or (longest - shortest > cfg.extent_margin and shortest > cfg.face_depth)
+
+
 def length_axis_seen(points: np.ndarray, yaw: float, cfg: OrientationConfig) -> bool:
-    """Whether the cloud itself shows which footprint axis of ``yaw`` is the length: it extends
-    further than ``cfg.length_evidence`` along one of them (else :func:`dominant_yaw` fell back on
-    the road prior)."""
+    """Whether the cloud itself shows that the length axis of ``yaw`` is the car's length
+    (:func:`extents_show_length`, the larger extent along it; else :func:`dominant_yaw` fell back
+    on the road prior)."""
     xz = points[:, [0, 2]] - points[:, [0, 2]].mean(axis=0)
-    return max(hi - lo for lo, hi in _edge_extents(xz, yaw, cfg.edge_percentile)) > cfg.length_evidence
+    extents = [hi - lo for lo, hi in _edge_extents(xz, yaw, cfg.edge_percentile)]
+    return extents_show_length(extents, cfg) and extents[0] >= extents[1]
 
 
 def dominant_yaw(points: np.ndarray, cfg: OrientationConfig) -> float:
@@ -357,9 +366,9 @@ def dominant_yaw(points: np.ndarray, cfg: OrientationConfig) -> float:
     A rectangle orientation in [0, 90) is found by maximising the closeness criterion of
     Zhang et al. (2017, "Efficient L-shape fitting for vehicle detection using laser scanners")
     on the x-z points and refined by least squares (:func:`_refine_rectangle_angle`); which of the
-    two rectangle axes is the car's length is decided by the cloud's extent along them (an extent
-    beyond ``cfg.length_evidence`` can only be a length), else by the road prior (the axis
-    closer to the optimisation frame's forward direction).
+    two rectangle axes is the car's length is decided by the cloud's extent along them
+    (:func:`extents_show_length`), else by the road prior (the axis closer to the optimisation
+    frame's forward direction).
     The result is in [-pi/2, pi/2) (a box is symmetric under yaw + pi).
     """
     xz = points[:, [0, 2]] - points[:, [0, 2]].mean(axis=0)
@@ -375,7 +384,7 @@ def dominant_yaw(points: np.ndarray, cfg: OrientationConfig) -> float:
             best_score, best = score, float(psi[k])
     best = _refine_rectangle_angle(xz, best, cfg)
     extents = [hi - lo for lo, hi in _edge_extents(xz, best, cfg.edge_percentile)]
-    if max(extents) > cfg.length_evidence:
+    if extents_show_length(extents, cfg):
         yaw = best if extents[0] >= extents[1] else best + np.pi / 2
     else:
         yaw = best if abs(np.cos(best)) >= abs(np.sin(best)) else best + np.pi / 2
