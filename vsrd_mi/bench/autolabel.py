@@ -113,8 +113,10 @@ def export_revision(rev: str, dest: Path) -> Path:
 
 
 def data_sequences(spec: str, data_dir: Path) -> list[tuple[str, Path, int]]:
-    """``(name, root, sequence number)`` of each sequence of a ``--data`` item (a ``suite:`` set
-    or a ``synth:`` sequence is generated unless a finished copy is there)."""
+    """``(name, absolute root, sequence number)`` of each sequence of a ``--data`` item (a
+    ``suite:`` set or a ``synth:`` sequence is generated unless a finished copy is there); the
+    workers run elsewhere, so roots are absolute."""
+    data_dir = data_dir.resolve()
     if spec == "bundled":
         return [(spec, BUNDLED_ROOT, 0)]
     kind, _, args = spec.partition(":")
@@ -126,7 +128,7 @@ def data_sequences(spec: str, data_dir: Path) -> list[tuple[str, Path, int]]:
         members = [m for preset in (presets.split(",") if presets else [None])
                    for m in select(suite(set_name), preset)]
         if where:  # a set written elsewhere is only read: its sequences must be there
-            root = Path(where)
+            root = Path(where).resolve()
             missing = [m.scenario.name for m in members
                        if sequence_name(m.sequence) not in read_manifest(root)["sequences"]]
             if missing:
