@@ -95,6 +95,13 @@ class Side:
         """The worker's environment: the tree (and its plugin folder) first on the path."""
         env = dict(os.environ)
         paths = [str(self.tree), str(self.tree / "plugins")]
+        if (self.tree / "plugins" / "__init__.py").is_file():
+            # older trees map the folder plugins/ itself to the package vsrd_plugins (package-dir)
+            shim = self.tree / ".bench-path"
+            shim.mkdir(exist_ok=True)
+            if not (shim / "vsrd_plugins").exists():
+                (shim / "vsrd_plugins").symlink_to(self.tree / "plugins", target_is_directory=True)
+            paths.append(str(shim))
         env["PYTHONPATH"] = os.pathsep.join(paths + ([env["PYTHONPATH"]] if env.get("PYTHONPATH") else []))
         if cache_dir is not None:
             env["DRJIT_CACHE_DIR"] = cache_dir
