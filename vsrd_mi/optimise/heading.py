@@ -168,8 +168,12 @@ def lamp_red(image: np.ndarray) -> np.ndarray:
     return (r > RED_MIN) & (r > RED_RATIO * g) & (r > RED_RATIO * b)
 
 
+#: One end of a box in one frame: ``(end (0 rear, 1 front), pixels, red share, facing cosine)``.
+Reading = tuple[int, int, float, float]
+
+
 def end_readings(box: Box3D, n: int, obs: Observations, images: list[np.ndarray | None],
-                 min_mask_pixels: int = HeadingConfig.min_mask_pixels) -> list[tuple[int, int, float, float]]:
+                 min_mask_pixels: int = HeadingConfig.min_mask_pixels) -> list[Reading]:
     """Per frame whose image is given and whose mask has at least ``min_mask_pixels`` pixels, per
     end of the box (0: its rear, 1: its front fifth, for ``box.yaw``) that shows at least
     :data:`MIN_END_PIXELS` mask pixels of its own: ``(end, pixels, red share, facing)``, where
@@ -207,15 +211,26 @@ def _votes(rear: int, front: int) -> tuple[float, int]:
     return ((rear - front) / total if total else 0.0), int(total)
 
 
+def lamp_votes(readings: list[Reading]) -> tuple[float, int]:
+    """``(evidence, views)`` of lamped ends among :func:`end_readings`' readings (see :func:`lamp_evidence`)."""
+    lamped = [k for k, _, share, _ in readings if LAMP_SHARE[0] <= share <= LAMP_SHARE[1]]
+    return _votes(lamped.count(0), lamped.count(1))
+
+
+def bare_end_votes(readings: list[Reading]) -> tuple[float, int]:
+    """``(evidence, views)`` of bare ends among :func:`end_readings`' readings (see :func:`bare_end_evidence`)."""
+    bare = [k for k, pixels, share, facing in readings
+            if facing >= BARE_FACING_COS and pixels >= MIN_BARE_END_PIXELS and share < LAMP_SHARE[0]]
+    return _votes(bare.count(1), bare.count(0))
+
+
 def lamp_evidence(box: Box3D, n: int, obs: Observations, images: list[np.ndarray | None],
                   min_mask_pixels: int = HeadingConfig.min_mask_pixels) -> tuple[float, int]:
     """``(evidence, views)``: an end read by :func:`end_readings` looks lamped when
     :data:`LAMP_SHARE` of its pixels are lamp red (a lamp's share of an end; red paint covers more
     and is left out). The evidence is the views with a lamped rear minus those with a lamped
     front, over both (positive: the box faces its yaw); ``views`` counts the lamped ends."""
-    lamped = [k for k, _, share, _ in end_readings(box, n, obs, images, min_mask_pixels)
-              if LAMP_SHARE[0] <= share <= LAMP_SHARE[1]]
-    return _votes(lamped.count(0), lamped.count(1))
+    return lamp_votes(end_readings(box, n, obs, images, min_mask_pixels))
 
 
 def bare_end_evidence(box: Box3D, n: int, obs: Observations, images: list[np.ndarray | None],
@@ -224,9 +239,15 @@ def bare_end_evidence(box: Box3D, n: int, obs: Observations, images: list[np.nda
     (:data:`BARE_FACING_COS`), shows :data:`MIN_BARE_END_PIXELS` or more and has less than
     :data:`LAMP_SHARE`'s lower bound of lamp red is taken for the front. The evidence is the views
     with a bare front minus those with a bare rear, over both (positive: the box faces its yaw)."""
-    bare = [k for k, pixels, share, facing in end_readings(box, n, obs, images, min_mask_pixels)
-            if facing >= BARE_FACING_COS and pixels >= MIN_BARE_END_PIXELS and share < LAMP_SHARE[0]]
-    return _votes(bare.count(1), bare.count(0))
+    return bare_end_votes(end_readings(box, n, obs, images, min_mask_pixels))
+
+
+def _vote_decision(box: Box3D, votes: tuple[float, int], source: str, cfg: HeadingConfig) -> HeadingDecision | None:
+    """The decision of a colour cue's votes, or None when too few views or too weak a majority."""
+    evidence, seen = votes
+    if seen >= cfg.min_lamp_views and abs(evidence) >= cfg.min_lamp_evidence:
+        return HeadingDecision(turned(box) if evidence < 0 else box, float(evidence), seen, source, bool(evidence < 0))
+    return None
 
 
 def decide_heading(box: Box3D, n: int, obs: Observations, cfg: HeadingConfig,
@@ -235,19 +256,15 @@ def decide_heading(box: Box3D, n: int, obs: Observations, cfg: HeadingConfig,
     ``images``: the frames' left images (RGB), for the lamps (None: silhouettes only)."""
     if box.dynamic:
         return HeadingDecision(box, 0.0, 0, "moving", False)
-    if images:
-        votes, seen = lamp_evidence(box, n, obs, images, cfg.min_mask_pixels)
-        if seen >= cfg.min_lamp_views and abs(votes) >= cfg.min_lamp_evidence:
-            return HeadingDecision(turned(box) if votes < 0 else box, float(votes), seen, "lamps", bool(votes < 0))
+    readings = end_readings(box, n, obs, images, cfg.min_mask_pixels) if images else []
+    if readings and (decision := _vote_decision(box, lamp_votes(readings), "lamps", cfg)):
+        return decision
     fwd, bwd, views = heading_scores(box, n, obs, min_mask_pixels=cfg.min_mask_pixels)
     evidence = fwd - bwd
     if abs(evidence) > cfg.min_evidence:
         return HeadingDecision(turned(box) if evidence < 0 else box, evidence, views, "silhouette", bool(evidence < 0))
-    if images and cfg.bare_ends:
-        votes, seen = bare_end_evidence(box, n, obs, images, cfg.min_mask_pixels)
-        if seen >= cfg.min_lamp_views and abs(votes) >= cfg.min_lamp_evidence:
-            return HeadingDecision(turned(box) if votes < 0 else box, float(votes), seen, "bare ends",
-                                   bool(votes < 0))
+    if readings and cfg.bare_ends and (decision := _vote_decision(box, bare_end_votes(readings), "bare ends", cfg)):
+        return decision
     faces = prior_faces_yaw(box, cfg.prior)
     turn, source = (False, "kept") if faces is None else (not faces, "prior")
     return HeadingDecision(turned(box) if turn else box, evidence, views, source, turn)
