@@ -25,6 +25,7 @@ import vsrd_mi  # noqa: F401  (selects the Mitsuba variant, registers the plugin
 from vsrd_mi.data.kitti_labels import label_from_box, write_labels
 from vsrd_mi.geometry import boxes2d
 from vsrd_mi.geometry.boxes import Box3D
+from vsrd_mi.geometry.vehicle_sizes import tight_width
 from vsrd_mi.optimise import losses
 from vsrd_mi.optimise.config import CarProfile, default_config
 from vsrd_mi.optimise.losses import to_float
@@ -461,6 +462,31 @@ def test_shape_prior_gradients_match_finite_differences():
     for key in keys:
         np.testing.assert_allclose(ad[key], fd[key], rtol=1e-2, atol=1e-3, err_msg=key)
     assert min(abs(v).max() for v in ad.values()) > 0.1  # both size and yaw pull
+
+
+def test_width_prior_is_the_width_l1_from_the_catalogue_plane():
+    sizes = np.array([[1.9, 1.5, 4.3], [2.0, 2.0, 5.2]])
+    field = field_of(np.array([[0.5, 0.2, 10.0], [-3.0, 0.4, 16.0]]), sizes, np.array([0.3, -1.0]))
+    b = field.boxes()
+    expected = tight_width(b["size"][:, 2], b["size"][:, 1])
+    got = values(losses.WidthPrior(np.array([2.0, 5.0])).loss(field.decode()))[0]
+    by_hand = (2.0 * abs(b["size"][0, 0] - expected[0]) + 5.0 * abs(b["size"][1, 0] - expected[1])) / 2
+    assert got == pytest.approx(by_hand, rel=1e-5)
+    on_plane = field_of(np.array([[0.5, 0.2, 10.0]]), np.array([[tight_width(4.3, 1.5), 1.5, 4.3]]), np.array([0.3]))
+    assert values(losses.WidthPrior(np.array([2.0])).loss(on_plane.decode()))[0] == pytest.approx(0.0, abs=1e-5)
+
+
+def test_width_prior_moves_the_width_only():
+    """AD matches central differences along the width; the length and height, which the masks
+    measure, get no gradient from it (detached), though the plane depends on them."""
+    field = field_of(np.array([[0.5, 0.2, 10.0], [-3.0, 0.4, 16.0]]), np.array([[1.9, 1.5, 4.3], [2.0, 2.0, 5.2]]),
+                     np.array([0.3, -1.0]))
+    prior = losses.WidthPrior(np.array([2.0, 5.0]))
+    ad, fd = ad_and_central_differences(field, ("size",), prior.loss, {"size": 1e-3})
+    ad, fd = ad["size"].reshape(-1, 3), fd["size"].reshape(-1, 3)
+    np.testing.assert_allclose(ad[:, 0], fd[:, 0], rtol=1e-2)
+    assert np.all(np.abs(ad[:, 0]) > 0.1)
+    assert np.all(ad[:, 1:] == 0.0) and np.all(np.abs(fd[:, 1:]) > 1e-3)
 
 
 def eikonal_points(rng, n: int, count: int) -> np.ndarray:

@@ -17,6 +17,7 @@ from vsrd_plugins.sdf import DecodedBoxes, InstanceField, box_sdf_local
 from ..geometry import boxes2d
 from ..geometry.boxes import CORNER_SIGNS
 from ..geometry.camera import NEAR_PLANE, footprint
+from ..geometry.vehicle_sizes import tight_width
 from ..geometry.xp import drjit_namespace
 from .config import CarProfile
 
@@ -285,6 +286,25 @@ class ShapePrior:
             sin_d = dec.sin * self.cos - dec.cos * self.sin
             per_box = per_box + self.w_yaw * sin_d * sin_d
         return dr.sum(per_box) / max(self.count, 1)
+
+
+class WidthPrior:
+    """Width of each box drawn towards the width real vehicles of its length and height have
+    (:func:`vsrd_mi.geometry.vehicle_sizes.tight_width`), with per-box weights ``weights`` (N,).
+
+    The masks fix a car's length and height but leave its width free to trade against its yaw,
+    length and range (docs/accuracy.md, "Widths"); this term settles that trade. The length and
+    height enter detached: the prior moves the width only, never the extents the masks measure.
+    """
+
+    def __init__(self, weights: np.ndarray):
+        self.count = len(weights)
+        self.w = to_float(np.asarray(weights, dtype=np.float64))
+
+    def loss(self, dec: DecodedBoxes) -> mi.Float:
+        """``sum_n w_n |width_n - tight_width(length_n, height_n)| / N`` (metres)."""
+        expected = tight_width(2.0 * dr.detach(dec.half[2]), 2.0 * dr.detach(dec.half[1]))
+        return dr.sum(self.w * dr.abs(2.0 * dec.half[0] - expected)) / max(self.count, 1)
 
 
 def shape_prior_loss(dec: DecodedBoxes, size_init: np.ndarray, yaw_init: np.ndarray,

@@ -249,6 +249,7 @@ class BoxOptimiser:
                                       np.where(self.dynamic, w.init_yaw_dynamic, w.init_yaw))
             if not prior.active:
                 prior = None
+        width_prior = losses.WidthPrior(np.full(self.n, w.width_prior)) if w.width_prior > 0 else None
         history = {k: [] for k in ("total", "projection", "silhouette", "eikonal", "init")}
         conv = Convergence(cfg.early_stop.window, cfg.early_stop.rel_loss, cfg.early_stop.box_tol)
         sdf_evals = 0
@@ -302,6 +303,10 @@ class BoxOptimiser:
                 l_prior = prior.loss(dec)
                 l_init = l_init + l_prior
                 total = total + l_prior
+            if width_prior is not None:
+                l_width = width_prior.loss(dec)
+                l_init = l_init + l_width
+                total = total + l_width
             dr.backward(total)
             for o_ in opts:
                 o_.step()

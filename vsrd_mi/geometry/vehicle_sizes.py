@@ -1,0 +1,94 @@
+"""How wide a vehicle's tight box is, given its length and height: a prior from real vehicles.
+
+A parked car's width is the extent its images show least: seen from behind or in front its mask
+box spans ``width * cos(a) + length * sin(a)`` at a viewing angle ``a`` off its axis, and the
+projection loss can trade the width against the yaw, the length and the range without changing
+any mask box (docs/accuracy.md, "Widths"). Its length and height, by contrast, are fixed by the
+masks of the views that pass it. Vehicle widths follow their lengths and heights closely: small
+cars are narrow, long and tall vans wide. :func:`tight_width` is the least-squares plane
+``width = a + b * length + c * height`` through :data:`CATALOGUE`, the published dimensions of
+common European cars, SUVs, vans and pickups (manufacturers' data sheets; widths with the door
+mirrors unfolded, which is what a tight box holds). Its residuals over the catalogue are a few
+centimetres (:func:`fit_residuals`).
+
+The catalogue was written down before any synthetic or real sequence was run with the prior,
+and it is not fitted to any of them.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import lru_cache
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class VehicleDimensions:
+    """Published exterior dimensions of one vehicle model (metres)."""
+
+    model: str
+    body: str
+    length: float
+    height: float
+    #: Body width, mirrors folded or left out.
+    width: float
+    #: Width across the unfolded door mirrors: the tight box's width.
+    width_mirrors: float
+
+
+#: Manufacturers' published figures, rounded to the centimetre (one body style and generation
+#: each). Widths across the mirrors are published less consistently than the other dimensions;
+#: a few here may be off by a few centimetres, which the plane's fit averages over.
+CATALOGUE: tuple[VehicleDimensions, ...] = (
+    VehicleDimensions("Fiat 500 (2007)", "city car", 3.55, 1.49, 1.63, 1.89),
+    VehicleDimensions("Toyota Yaris (2020)", "city car", 3.94, 1.50, 1.75, 1.96),
+    VehicleDimensions("VW Polo (2017)", "hatchback", 4.05, 1.46, 1.75, 1.96),
+    VehicleDimensions("VW Golf VII (2013)", "hatchback", 4.26, 1.45, 1.80, 2.03),
+    VehicleDimensions("VW Golf VIII (2020)", "hatchback", 4.28, 1.49, 1.79, 2.07),
+    VehicleDimensions("Ford Focus (2018)", "hatchback", 4.38, 1.45, 1.83, 2.01),
+    VehicleDimensions("Skoda Octavia Combi (2020)", "estate", 4.69, 1.47, 1.83, 2.00),
+    VehicleDimensions("VW Passat (2015)", "sedan", 4.77, 1.46, 1.83, 2.08),
+    VehicleDimensions("BMW 3 Series (2019)", "sedan", 4.71, 1.44, 1.83, 2.07),
+    VehicleDimensions("Mercedes E-Class (2016)", "sedan", 4.92, 1.47, 1.85, 2.07),
+    VehicleDimensions("Tesla Model 3 (2017)", "sedan", 4.69, 1.44, 1.85, 2.09),
+    VehicleDimensions("Tesla Model S (2012)", "sedan", 4.97, 1.45, 1.96, 2.19),
+    VehicleDimensions("Tesla Model Y (2020)", "suv", 4.75, 1.62, 1.92, 2.13),
+    VehicleDimensions("VW Tiguan (2016)", "suv", 4.49, 1.67, 1.84, 2.10),
+    VehicleDimensions("BMW X5 (2018)", "suv", 4.92, 1.75, 2.00, 2.22),
+    VehicleDimensions("Volvo XC90 (2015)", "suv", 4.95, 1.78, 1.96, 2.14),
+    VehicleDimensions("Porsche 911 (2019)", "sports", 4.52, 1.30, 1.85, 2.02),
+    VehicleDimensions("Mazda MX-5 (2015)", "sports", 3.92, 1.24, 1.74, 1.93),
+    VehicleDimensions("Renault Kangoo (2008)", "van", 4.28, 1.80, 1.83, 2.14),
+    VehicleDimensions("VW Transporter T6 (2015)", "van", 4.90, 1.99, 1.90, 2.30),
+    VehicleDimensions("Ford Transit Custom (2012)", "van", 4.97, 1.98, 1.99, 2.27),
+    VehicleDimensions("Ford Ranger (2019)", "pickup", 5.36, 1.82, 1.86, 2.16),
+    VehicleDimensions("Toyota Hilux (2016)", "pickup", 5.33, 1.82, 1.86, 2.15),
+)
+
+
+@lru_cache(maxsize=1)
+def width_coefficients() -> tuple[float, float, float]:
+    """``(a, b, c)`` of the least-squares plane ``width_mirrors = a + b * length + c * height``
+    through :data:`CATALOGUE`."""
+    design = np.array([[1.0, v.length, v.height] for v in CATALOGUE])
+    target = np.array([v.width_mirrors for v in CATALOGUE])
+    coef, *_ = np.linalg.lstsq(design, target, rcond=None)
+    return float(coef[0]), float(coef[1]), float(coef[2])
+
+
+def tight_width(length, height):
+    """Expected width (m, mirrors included) of a vehicle of the given length and height (m).
+
+    Works on floats, NumPy arrays and Dr.Jit arrays alike (a plane in ``length`` and ``height``).
+    """
+    a, b, c = width_coefficients()
+    return a + b * length + c * height
+
+
+def fit_residuals() -> np.ndarray:
+    """Catalogue widths (mirrors included) less :func:`tight_width` of their lengths and heights (m)."""
+    return np.array([v.width_mirrors - tight_width(v.length, v.height) for v in CATALOGUE])
+
+
+__all__ = ["CATALOGUE", "VehicleDimensions", "fit_residuals", "tight_width", "width_coefficients"]
