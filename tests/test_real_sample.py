@@ -20,6 +20,9 @@ def test_score_reads_size_errors_and_the_axis_modulo_180_degrees():
     s = score(box, road=0.0)
     assert s["relative_error"]["height"] == pytest.approx(0.08) and s["relative_error"]["length"] == pytest.approx(0.0)
     assert s["axis_error_deg"] == pytest.approx(3.0) and s["faces_camera"] and s["passed"]
+    # the box convention is the tight box, mirrors included: 0.2-0.25 m wider than the body
+    assert 0.2 <= GOLF_MK5["width"] - GOLF_MK5["width_body"] <= 0.25
+    assert s["width_body_relative_error"] == pytest.approx(GOLF_MK5["width"] / GOLF_MK5["width_body"] - 1.0)
     assert not score(box, road=np.radians(10.0))["passed"]
 
 

@@ -32,10 +32,15 @@ from ..batch.tasks import TargetTask
 from ..data.kitti360 import Sequence, frame_file, instance_dir, sequence_name
 from ..data.observations import opt_from_world
 from ..geometry.boxes import Box3D, wrap_angle
+from ..geometry.vehicle_sizes import mirror_span
 
 #: VW Golf Mk5 (2003-2008) length, width without mirrors, height (m), Volkswagen's technical data
-#: (4204 x 1759 x 1479 mm). The tight box with mirrors is about 0.2 m wider.
-GOLF_MK5 = {"length": 4.204, "width": 1.759, "height": 1.479}
+#: (4204 x 1759 x 1479 mm).
+GOLF_MK5 = {"length": 4.204, "width_body": 1.759, "height": 1.479}
+#: Labels are tight boxes of the whole vehicle, mirrors included (docs/accuracy.md), so the width
+#: they are scored against is the body's plus the mirrors' span of the catalogue's Golf VII
+#: (``vsrd_mi.geometry.vehicle_sizes.CATALOGUE``; the Mk5's own is not in the technical data).
+GOLF_MK5["width"] = GOLF_MK5["width_body"] + mirror_span("VW Golf VII (2013)")
 #: Acceptance bounds (issue 33): every dimension within 10 %, the axis within 5 degrees.
 SIZE_TOLERANCE = 0.10
 AXIS_TOLERANCE_DEG = 5.0
@@ -82,13 +87,15 @@ def road_yaw(seq: Sequence, reference: int) -> float:
 
 
 def score(box: Box3D, road: float) -> dict:
-    """Relative size errors against :data:`GOLF_MK5` and the axis error (degrees, mod 180)."""
+    """Relative size errors against :data:`GOLF_MK5` (the width with mirrors; the body's for
+    information) and the axis error (degrees, mod 180)."""
     w, h, l = box.size
     errors = {"length": l / GOLF_MK5["length"] - 1.0, "width": w / GOLF_MK5["width"] - 1.0,
               "height": h / GOLF_MK5["height"] - 1.0}
     axis = float(np.degrees(wrap_angle(2.0 * (box.yaw - road)) / 2.0))
     passed = all(abs(e) <= SIZE_TOLERANCE for e in errors.values()) and abs(axis) <= AXIS_TOLERANCE_DEG
     return {"size_lwh_m": [float(l), float(w), float(h)], "relative_error": errors,
+            "width_body_relative_error": float(w / GOLF_MK5["width_body"] - 1.0),
             "axis_error_deg": axis, "faces_camera": bool(box.heading[2] < 0), "passed": passed}
 
 

@@ -86,9 +86,18 @@ def tight_width(length, height):
     return a + b * length + c * height
 
 
+def mirror_span(model: str) -> float:
+    """Width the door mirrors add to the body of catalogue vehicle ``model`` (m); KeyError naming
+    the model when the catalogue has no such vehicle."""
+    for v in CATALOGUE:
+        if v.model == model:
+            return v.width_mirrors - v.width
+    raise KeyError(f"vehicle {model!r} is not in the catalogue")
+
+
 def fit_residuals() -> np.ndarray:
     """Catalogue widths (mirrors included) less :func:`tight_width` of their lengths and heights (m)."""
     return np.array([v.width_mirrors - tight_width(v.length, v.height) for v in CATALOGUE])
 
 
-__all__ = ["CATALOGUE", "VehicleDimensions", "fit_residuals", "tight_width", "width_coefficients"]
+__all__ = ["CATALOGUE", "VehicleDimensions", "fit_residuals", "mirror_span", "tight_width", "width_coefficients"]
