@@ -14,8 +14,10 @@ def test_presets_differ_in_budget_and_the_long_schedules_shape_prior_only():
     assert not p.early_stop.enabled and d.early_stop.enabled
     assert p.residual and not d.residual
     assert d.weights == LossWeights()
-    prior = ("init_size", "init_yaw", "init_size_dynamic", "init_yaw_dynamic")
-    assert all(getattr(d.weights, k) == 0.0 for k in prior)  # the default runs without the prior
+    prior = ("init_size", "init_size_dynamic")
+    assert all(getattr(d.weights, k) == 0.0 for k in prior)  # the default runs without the size prior ...
+    for k in ("init_yaw", "init_yaw_dynamic"):  # ... with the yaw priors, in both presets
+        assert getattr(p.weights, k) == getattr(d.weights, k) > LONG_SCHEDULE_SHAPE_PRIOR
     assert all(getattr(p.weights, k) == LONG_SCHEDULE_SHAPE_PRIOR > 0 for k in prior)
     assert dataclasses.replace(p.weights, **{k: 0.0 for k in prior}) == d.weights  # nothing else differs
     assert p.car_profile == d.car_profile == CarProfile() and d.car_profile.enabled
