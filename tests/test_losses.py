@@ -17,11 +17,11 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 import pytest
+import vsrd_mi  # noqa: F401  (selects the Mitsuba variant, registers the plugins)
 from vsrd_plugins import box_properties
 from vsrd_plugins.sdf import InstanceField, ResidualField
 from vsrd_plugins.silhouette import VSRDSilhouetteIntegrator
 
-import vsrd_mi  # noqa: F401  (selects the Mitsuba variant, registers the plugins)
 from vsrd_mi.data.kitti_labels import label_from_box, write_labels
 from vsrd_mi.geometry import boxes2d
 from vsrd_mi.geometry.boxes import Box3D
@@ -747,7 +747,7 @@ def test_shape_prior_enters_the_init_term_with_the_initial_boxes(scene):
     for w, w_dyn, expected in ((2.0, 2.0, 1.5), (0.0, 0.0, 0.0), (2.0, 0.0, 1.5 * (~moving).mean())):
         cfg = quick(residual=False, steps=1)
         cfg = cfg.replace(weights=dataclasses.replace(cfg.weights, init_size=w, init_yaw=w, init_size_dynamic=w_dyn,
-                                                      init_yaw_dynamic=w_dyn))
+                                                      init_yaw_dynamic=w_dyn, width_prior=0.0))
         result = BoxOptimiser(obs, gt, cfg, init_boxes=init).run()
         assert result.loss_history["init"][0] == pytest.approx(expected, abs=2e-3), (w, w_dyn)
 

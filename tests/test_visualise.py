@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 import trimesh
 from skimage.measure import label as connected_components
+import vsrd_mi  # noqa: F401
 from vsrd_plugins import box_properties
 
-import vsrd_mi  # noqa: F401
 from vsrd_mi.autolabel import visualise as V
 from vsrd_mi.autolabel.job import process_target
 from vsrd_mi.batch.tasks import TargetTask
