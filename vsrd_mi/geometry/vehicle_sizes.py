@@ -38,8 +38,9 @@ class VehicleDimensions:
 
 
 #: Manufacturers' published figures, rounded to the centimetre (one body style and generation
-#: each). Widths across the mirrors are published less consistently than the other dimensions;
-#: a few here may be off by a few centimetres, which the plane's fit averages over.
+#: each), written down from the data sheets as recalled, not checked against them here. Widths
+#: across the mirrors are published less consistently than the other dimensions; a few here may
+#: be off by a few centimetres, which the plane's fit averages over.
 CATALOGUE: tuple[VehicleDimensions, ...] = (
     VehicleDimensions("Fiat 500 (2007)", "city car", 3.55, 1.49, 1.63, 1.89),
     VehicleDimensions("Toyota Yaris (2020)", "city car", 3.94, 1.50, 1.75, 1.96),

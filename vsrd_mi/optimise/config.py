@@ -15,8 +15,6 @@ from dataclasses import dataclass, field
 
 #: Forms of the projection loss (see :func:`vsrd_mi.optimise.losses.projection_loss`).
 PROJECTION_MODES = ("symmetric", "containment")
-#: The :class:`LossWeights` fields of the size / yaw prior (parked and moving cars).
-SHAPE_PRIOR_FIELDS = ("init_size", "init_yaw", "init_size_dynamic", "init_yaw_dynamic")
 
 
 @dataclass(frozen=True)
@@ -88,10 +86,6 @@ class LossWeights:
     projection_excess: float = 0.0
     #: Rendered labels are clamped to [eps, 1 - eps] inside the BCE.
     bce_eps: float = 1e-6
-
-    def with_shape_prior(self, weight: float) -> "LossWeights":
-        """These weights with every size / yaw prior weight (:data:`SHAPE_PRIOR_FIELDS`) set to ``weight``."""
-        return dataclasses.replace(self, **{k: float(weight) for k in SHAPE_PRIOR_FIELDS})
 
     def __post_init__(self) -> None:
         if self.projection_mode not in PROJECTION_MODES:
@@ -370,8 +364,7 @@ def paper_config() -> AutolabelConfig:
 
     The loss weights are the default's (:class:`LossWeights`, including ``init_dynamic`` and the
     yaw priors) plus the size prior, which 3000 steps need (``LossWeights.init_size``), and the
-    projection
-    loss projects the default's :class:`CarProfile` (the paper projects the box's corners:
+    projection loss projects the default's :class:`CarProfile` (the paper projects the box's corners:
     ``--set car_profile.clearance=0 --set car_profile.overhang=0 --set car_profile.corner=0``).
     The sequence-level consensus of parked cars (:class:`ConsensusConfig`, not in the paper)
     runs after the targets in both presets (``--set consensus.enabled=false``).

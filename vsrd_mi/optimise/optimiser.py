@@ -250,6 +250,8 @@ class BoxOptimiser:
             if not prior.active:
                 prior = None
         width_prior = losses.WidthPrior(np.full(self.n, w.width_prior)) if w.width_prior > 0 else None
+        # the terms logged together as "init": the anchor and the priors on size, yaw and width
+        init_terms = [t for t in (anchor, prior, width_prior) if t is not None]
         history = {k: [] for k in ("total", "projection", "silhouette", "eikonal", "init")}
         conv = Convergence(cfg.early_stop.window, cfg.early_stop.rel_loss, cfg.early_stop.box_tol)
         sdf_evals = 0
@@ -296,17 +298,10 @@ class BoxOptimiser:
                 l_eik = losses.eikonal_loss(it.field, dec, it.field.residual_weights(),
                                             self.eikonal_points(), cfg.eikonal_step)
                 total = total + w.eikonal * l_eik
-            if anchor is not None:
-                l_init = anchor.loss(dec)
-                total = total + l_init
-            if prior is not None:
-                l_prior = prior.loss(dec)
-                l_init = l_init + l_prior
-                total = total + l_prior
-            if width_prior is not None:
-                l_width = width_prior.loss(dec)
-                l_init = l_init + l_width
-                total = total + l_width
+            for term in init_terms:
+                l_term = term.loss(dec)
+                l_init = l_init + l_term
+                total = total + l_term
             dr.backward(total)
             for o_ in opts:
                 o_.step()
