@@ -11,7 +11,7 @@ import trimesh
 
 from vsrd_mi.geometry.boxes import Box3D, wrap_angle
 from vsrd_mi.init import InitConfig, StereoFrame, initialise, save_point_clouds_ply
-from vsrd_mi.init.attributes import (dominant_yaw, estimate_velocity, fit_footprint,
+from vsrd_mi.init.attributes import (consistent_views, dominant_yaw, estimate_velocity, fit_footprint,
                                      initialise_instance, is_dynamic, reference_offset,
                                      to_target_time)
 from vsrd_mi.init.config import FootprintConfig, OrientationConfig, PointCloudConfig, VelocityConfig
@@ -281,6 +281,27 @@ def test_location_from_nearest_frame_moved_back_by_velocity():
     init = initialise_instance(7, clouds, cams, InitConfig())
     assert init.dynamic and init.reference_offset == 3
     np.testing.assert_allclose(init.centre, box.centre, atol=0.2)
+
+
+def test_a_frame_whose_cloud_lies_away_from_the_others_is_left_out():
+    """One frame's stereo cloud 7 m off (a mismatch near the image border) must not stretch a
+    parked car's footprint; a frame showing another face of the car is kept."""
+    rng = np.random.default_rng(11)
+    box = Box3D([4.0, 0.8, 6.0], CAR, 0.5 * np.pi)          # across the road, length along x
+    cams = {o: np.array([0.0, 0.0, 1.0 * o]) for o in range(-6, 3)}
+    clouds = {o: box_surface(box, 400, rng, 0.03, visible_faces(box, cams[o])) for o in range(-6, 2)}
+    clean = initialise_instance(3, dict(clouds), cams, InitConfig())
+    clouds[2] = box_surface(box, 400, rng, 0.03, (0,)) + np.array([-7.0, 0.0, 3.0])
+    init = initialise_instance(3, clouds, cams, InitConfig())
+    assert not init.dynamic and 2 in init.clouds
+    np.testing.assert_allclose(init.centre, clean.centre, atol=1e-6)
+    assert abs(wrap_angle(2 * (init.yaw - box.yaw))) < np.deg2rad(10)
+    assert np.linalg.norm(init.centre - box.centre) < 0.5
+    kept = consistent_views(clouds, np.zeros(3), 100, 0.2, 1.0)
+    assert set(kept) == set(range(-6, 2))
+    # too few frames to tell which one is off: all are kept
+    assert set(consistent_views({0: clouds[0], 2: clouds[2]}, np.zeros(3), 100, 0.2, 1.0)) == {0, 2}
+    assert set(consistent_views(clouds, np.zeros(3), 100, 0.0, 1.0)) == set(clouds)
 
 
 def test_footprint_corrects_visible_surface_bias():

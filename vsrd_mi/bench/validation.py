@@ -21,6 +21,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shutil
 import subprocess
 import sys
 import time
@@ -100,11 +101,20 @@ def check(figures: dict) -> dict[str, bool | None]:
     return out
 
 
-def run(set_name: str, root: Path, work: Path, targets: int, jobs: int, extra: list[str]) -> dict:
-    """Generate (if needed), autolabel and evaluate a set (see the module docstring)."""
+def run(set_name: str, root: Path, work: Path, targets: int, jobs: int, extra: list[str],
+        resume: bool = False) -> dict:
+    """Generate (if needed), autolabel and evaluate a set (see the module docstring).
+
+    The sequences' folders under ``work`` are removed first unless ``resume``: autolabel resumes
+    the targets it finds done with the same configuration, and a code change that the
+    configuration does not record would otherwise be measured on the earlier labels.
+    """
     write_suite(root, set_name)
     members = select(suite(set_name), None)
     plans = [(m.sequence, middle_targets(root, m.sequence, targets)) for m in members]
+    if not resume:
+        for m in members:
+            shutil.rmtree(work / sequence_name(m.sequence), ignore_errors=True)
     with ThreadPoolExecutor(max_workers=max(1, jobs)) as pool:
         runs = list(pool.map(lambda p: autolabel(root, p[0], p[1], work, extra), plans))
     config = EvalConfig()
@@ -137,6 +147,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
                    help="autolabel --set override (repeatable)")
     p.add_argument("--json", type=Path, help="result file (default benchmarks/<set>.json)")
+    p.add_argument("--resume", action="store_true",
+                   help="keep the targets an earlier run of --work finished (default: label afresh)")
     p.set_defaults(func=main)
 
 
@@ -144,7 +156,7 @@ def main(args: argparse.Namespace) -> int:
     root = args.root or Path("runs/bench-data") / args.set_name
     work = args.work or Path(f"runs/bench-{args.set_name}")
     extra = ["--config", args.config] + [a for o in args.option for a in ("--set", o)]
-    result = run(args.set_name, root, work, args.targets, args.jobs, extra)
+    result = run(args.set_name, root, work, args.targets, args.jobs, extra, args.resume)
     path = args.json or Path("benchmarks") / f"{args.set_name}.json"
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(result, indent=1) + "\n")

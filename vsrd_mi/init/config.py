@@ -257,6 +257,13 @@ class InitConfig:
     min_points_location: int = 120
     #: Instances whose clouds hold fewer points than this in every frame get no initialisation.
     min_points_any: int = 20
+    #: A frame's cloud takes part in locating its instance when at least ``agreement_share`` of
+    #: its points lie within ``agreement_distance`` (m, horizontally) of the other frames' points
+    #: (:func:`vsrd_mi.init.attributes.consistent_views`): a stereo mismatch can put a whole
+    #: frame's cloud metres from the car, while a frame that shows another face of the car shares
+    #: an edge with the frames before and after it. ``agreement_share = 0`` keeps every frame.
+    agreement_share: float = 0.2
+    agreement_distance: float = 1.0
     stereo: StereoConfig = field(default_factory=StereoConfig)
     cloud: PointCloudConfig = field(default_factory=PointCloudConfig)
     velocity: VelocityConfig = field(default_factory=VelocityConfig)
@@ -268,3 +275,6 @@ class InitConfig:
             raise ValueError(f"depth_mode must be one of {DEPTH_MODES}, got {self.depth_mode!r}")
         if self.depth_mode == "dir" and not self.depth_dir:
             raise ValueError("depth_mode 'dir' needs depth_dir")
+        if not 0.0 <= self.agreement_share <= 1.0 or self.agreement_distance <= 0:
+            raise ValueError(f"agreement_share must be in [0, 1] and agreement_distance > 0, got "
+                             f"{self.agreement_share}, {self.agreement_distance}")
