@@ -153,6 +153,13 @@ def test_axis_hypotheses_turn_a_box_standing_across_back_to_its_length(target):
     kept = choose_yaw(true_box, n, obs, cfg, anchor=2.0)
     assert not kept.switched and kept.yaw == true_box.yaw
     assert len(hypotheses(0.3)) == 4 and len(hypotheses(0.0)) == 2   # duplicates mod 180 dropped
+    assert len(hypotheses(0.3, road=False)) == 2
+    # a near car's rectangle axes are the only hypotheses; the road's come in beyond the range
+    turned = dataclasses.replace(true_box, yaw=float(true_box.yaw + 0.3))
+    assert np.linalg.norm(turned.centre[[0, 2]]) < cfg.road_hypotheses_beyond
+    assert len(choose_yaw(turned, n, obs, cfg, anchor=2.0).hypotheses) == 2
+    everywhere = AxisConfig(road_hypotheses_beyond=0.0)
+    assert len(choose_yaw(turned, n, obs, everywhere, anchor=2.0).hypotheses) == 4
 
 
 def lamp_painted_images(obs, n, box, everywhere: bool) -> list[np.ndarray]:

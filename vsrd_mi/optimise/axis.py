@@ -12,17 +12,18 @@ projects to rectangles of the wrong widths as the camera drives past. For every 
 :func:`choose_yaw` fits a box to the instance's mask boxes (the optimiser's projection loss in its
 plain form: smooth L1 of the projected box corners against the mask box, one-sided on the sides an
 occluder may cut short, plus the initialisation anchor on the centre) for each yaw hypothesis
-(the initial yaw, the initial yaw turned by 90 degrees, the road's direction and its normal), and
-keeps the initial yaw unless another hypothesis fits the mask boxes clearly better
-(``AxisConfig.switch_ratio``) and its box's silhouettes overlap the masks better too
-(``AxisConfig.min_silhouette_gain``: the mask boxes alone can be matched by a box turned the wrong
-way, the masks' shapes less so). Where the initial axis was only the road prior's (the cloud did
+(the initial yaw and the initial yaw turned by 90 degrees; for cars beyond
+``AxisConfig.road_hypotheses_beyond`` also the road's direction and its normal, since there the
+cloud's rectangle itself is uncertain), and keeps the initial yaw unless another hypothesis fits
+the mask boxes clearly better (``AxisConfig.switch_ratio``) and a car body in its box overlaps
+the masks better too (``AxisConfig.min_silhouette_gain``: the mask boxes alone can be matched by
+a box turned the wrong way, the masks' shapes less so). Where the initial axis was only the road prior's (the cloud did
 not show the length), the best-fitting hypothesis is taken whenever both measures prefer it.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.optimize import minimize
@@ -30,7 +31,7 @@ from scipy.optimize import minimize
 from ..data.observations import Observations
 from ..geometry.boxes import CORNER_SIGNS, Box3D, wrap_angle
 from ..geometry.camera import NEAR_PLANE, image_bounds
-from ..geometry.silhouettes import BodyPart, BodyTemplate, rasterise_template
+from ..geometry.silhouettes import BODY_TEMPLATES, BodyTemplate, rasterise_template
 from .config import AxisConfig
 
 #: Huber transition (px) of the fit's residuals, the optimiser's default.
@@ -40,9 +41,6 @@ HUBER_BETA_PX = 1.0
 REFERENCE_DIAGONAL_PX = 100.0
 #: Pixels around a mask box within which :func:`silhouette_iou` compares silhouettes.
 SILHOUETTE_MARGIN_PX = 20
-#: The box as a single convex part (its projected hull).
-BOX_BODY = BodyTemplate("box", (BodyPart(((-1.0, 0.0), (1.0, 0.0), (1.0, 1.0), (-1.0, 1.0)),
-                                         w_bottom=1.0, w_top=1.0),))
 #: Cost evaluations of one hypothesis's fit (Powell's method).
 FIT_EVALUATIONS = 300
 #: Box sizes the fit may reach: width (x, mirrors included) and length (z) in metres, those of
@@ -120,11 +118,11 @@ def fit_cost(box: Box3D, yaw: float, world_to_cam: np.ndarray, K: np.ndarray, bo
     return float(res.fun), make(res.x)
 
 
-def hypotheses(yaw: float) -> list[float]:
-    """The initial yaw, it turned by 90 degrees, and the optimisation frame's forward direction
-    (the road, along which the ego drives) and its normal; duplicates (mod 180) dropped."""
+def hypotheses(yaw: float, road: bool = True) -> list[float]:
+    """The initial yaw, it turned by 90 degrees, and (``road``) the optimisation frame's forward
+    direction (the road, along which the ego drives) and its normal; duplicates (mod 180) dropped."""
     out: list[float] = []
-    for y in (yaw, yaw + 0.5 * np.pi, 0.0, 0.5 * np.pi):
+    for y in (yaw, yaw + 0.5 * np.pi) + ((0.0, 0.5 * np.pi) if road else ()):
         y = float(wrap_angle(y))
         if all(abs(wrap_angle(2.0 * (y - o))) > 1e-6 for o in out):
             out.append(y)
@@ -137,7 +135,7 @@ def choose_yaw(box: Box3D, n: int, obs: Observations, cfg: AxisConfig, anchor: f
     module docstring); the initial yaw unless another costs less than ``cfg.switch_ratio`` of it
     (any less, when the initial axis was not ``axis_seen`` but the road prior's)."""
     views = np.flatnonzero(obs.visible[:, n])
-    ys = hypotheses(box.yaw)
+    ys = hypotheses(box.yaw, road=float(np.linalg.norm(box.centre[[0, 2]])) > cfg.road_hypotheses_beyond)
     if box.dynamic or len(views) < cfg.min_views:
         return AxisChoice(box.yaw, tuple(ys), (), False)
     w2c = np.linalg.inv(obs.cam_to_opt[views])
@@ -152,25 +150,34 @@ def choose_yaw(box: Box3D, n: int, obs: Observations, cfg: AxisConfig, anchor: f
     return AxisChoice(ys[best] if switched else box.yaw, tuple(ys), tuple(costs), switched)
 
 
-def silhouette_iou(box: Box3D, n: int, obs: Observations, views: np.ndarray) -> float:
-    """Mean IoU over ``views`` of ``box``'s projected hull and instance ``n``'s mask, leaving out
-    the other instances' masks (they may hide the car): the silhouettes' shape, which the mask
-    boxes alone do not compare."""
+def silhouette_iou(box: Box3D, n: int, obs: Observations, views: np.ndarray,
+                   templates: tuple[BodyTemplate, ...] = BODY_TEMPLATES) -> float:
+    """How well ``box`` explains instance ``n``'s masks in ``views``: the mean IoU over the views
+    of the mask and the silhouette of a car body in the box (:mod:`vsrd_mi.geometry.silhouettes`),
+    for the body style and front end that match best, leaving out the other instances' masks
+    (they may hide the car). A box's own outline is not a car's: a box turned the wrong way can
+    match the masks' outlines as well as the right one, a car body less so."""
     W, H = obs.image_size
-    ious = []
+    ious = np.zeros((len(templates), 2))
+    count = 0
     for f in views:
         w2c = np.linalg.inv(obs.cam_to_opt[f])
         rect = np.concatenate([obs.boxes2d[f, n, :2] - SILHOUETTE_MARGIN_PX, obs.boxes2d[f, n, 2:] + SILHOUETTE_MARGIN_PX])
         x0, y0 = (int(max(v, 0)) for v in np.floor(rect[:2]))
         x1, y1 = int(min(np.ceil(rect[2]), W)), int(min(np.ceil(rect[3]), H))
-        sil = rasterise_template(BOX_BODY, box.at_offset(float(obs.dt[f])), w2c, obs.K[f], (x0, y0, x1, y1))
-        if sil is None:
-            continue
         mask = obs.masks[f, n, y0:y1, x0:x1]
         care = ~(np.delete(obs.masks[f], n, axis=0)[:, y0:y1, x0:x1].any(axis=0) & ~mask)
-        union = np.count_nonzero((sil | mask) & care)
-        ious.append(np.count_nonzero(sil & mask & care) / union if union else 0.0)
-    return float(np.mean(ious)) if ious else 0.0
+        at = box.at_offset(float(obs.dt[f]))
+        sils = [[rasterise_template(t, replace(at, yaw=at.yaw + turn), w2c, obs.K[f], (x0, y0, x1, y1))
+                 for turn in (0.0, np.pi)] for t in templates]
+        if any(s is None for row in sils for s in row):
+            continue
+        count += 1
+        for i, row in enumerate(sils):
+            for j, sil in enumerate(row):
+                union = np.count_nonzero((sil | mask) & care)
+                ious[i, j] += np.count_nonzero(sil & mask & care) / union if union else 0.0
+    return float(ious.max() / count) if count else 0.0
 
 
 def choose_yaws(boxes: list[Box3D], obs: Observations, cfg: AxisConfig, anchor: float,
