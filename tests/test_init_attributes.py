@@ -295,6 +295,11 @@ def test_a_frame_whose_cloud_lies_away_from_the_others_is_left_out():
     init = initialise_instance(3, clouds, cams, InitConfig())
     assert not init.dynamic and 2 in init.clouds
     np.testing.assert_allclose(init.centre, clean.centre, atol=1e-6)
+    # the points the footprint was fitted to (kept for the optimisation's visible-surface term)
+    # are the agreeing frames' clouds, each with the camera that saw it
+    assert len(init.fit_points) == len(init.fit_cameras) == sum(len(clouds[o]) for o in range(-6, 2))
+    assert np.max(np.linalg.norm(init.fit_points - box.centre, axis=1)) < 3.0  # not the frame 7 m off
+    assert set(map(tuple, init.fit_cameras)) == {tuple(cams[o]) for o in range(-6, 2)}
     assert abs(wrap_angle(2 * (init.yaw - box.yaw))) < np.deg2rad(10)
     assert np.linalg.norm(init.centre - box.centre) < 0.5
     kept = consistent_views(clouds, np.zeros(3), 100, 0.2, 1.0)

@@ -489,6 +489,73 @@ def test_width_prior_moves_the_width_only():
     assert np.all(ad[:, 1:] == 0.0) and np.all(np.abs(fd[:, 1:]) > 1e-3)
 
 
+def surface_cloud(centre, size, yaw, camera, count, rng, offset=0.0):
+    """Points on the faces of a box that ``camera`` sees (its visible surface), pushed
+    ``offset`` metres along their rays (positive: behind the surface), and their cameras."""
+    c, s = np.cos(yaw), np.sin(yaw)
+    local_cam = np.array([c * (camera[0] - centre[0]) - s * (camera[2] - centre[2]),
+                          s * (camera[0] - centre[0]) + c * (camera[2] - centre[2])])
+    half = np.array([size[0], size[2]]) / 2
+    pts = []
+    for axis in (0, 1):
+        side = np.sign(local_cam[axis])
+        if abs(local_cam[axis]) <= half[axis]:
+            continue
+        p = rng.uniform(-0.9, 0.9, (count, 2)) * half
+        p[:, axis] = side * half[axis]
+        pts.append(p)
+    p = np.concatenate(pts)
+    ray = p - local_cam
+    p = p + offset * ray / np.linalg.norm(ray, axis=1, keepdims=True)
+    world = np.zeros((len(p), 3))
+    world[:, 0] = centre[0] + c * p[:, 0] + s * p[:, 1]
+    world[:, 2] = centre[2] - s * p[:, 0] + c * p[:, 1]
+    world[:, 1] = centre[1]
+    return world, np.repeat(np.asarray(camera, float)[None], len(p), 0)
+
+
+def test_visible_surface_is_a_quantile_soft_l1_of_the_range_scaled_residuals():
+    """By hand for a box seen square-on (only its front face visible): each point's residual is
+    its along-ray distance behind the face, scaled by (10 m / range)^2; residuals in front of the
+    face weigh 1 - q, those behind it q. Moving the box away costs more than moving it nearer."""
+    rng = np.random.default_rng(5)
+    centres, sizes, yaws = np.array([[0.5, 0.8, 12.0], [-4.0, 0.8, 20.0]]), np.array([[1.8, 1.5, 4.4], [2.0, 1.9, 5.0]]), np.array([0.0, 0.7])
+    clouds = [surface_cloud(centres[n], sizes[n], yaws[n], np.zeros(3), 40, rng, offset=0.05) for n in range(2)]
+    q, scale = 0.1, 0.2
+    term = losses.VisibleSurface([c[0] for c in clouds], [c[1] for c in clouds], np.array([2.0, 0.0]),
+                                 scale=scale, reference_range=10.0, max_points=1000, quantile=q)
+    assert term.active and term.lanes == len(clouds[0][0])  # box 1 weighs 0: no lanes
+    pts = clouds[0][0]
+    rng_k = np.linalg.norm(pts[:, [0, 2]], axis=1)
+
+    def by_hand(shift: float) -> float:
+        face = centres[0, 2] + shift - sizes[0, 2] / 2
+        r = (pts[:, 2] - face) / (pts[:, 2] / rng_k) * (10.0 / rng_k) ** 2
+        soft = scale * (np.sqrt(1 + (r / scale) ** 2) - 1)
+        return 2.0 * np.mean(np.where(r < 0, 1 - q, q) * soft) / 2
+
+    for shift in (0.0, 0.5, -0.5):
+        moved = centres.copy()
+        moved[0, 2] += shift
+        got = values(term.loss(field_of(moved, sizes, yaws).decode()))[0]
+        assert got == pytest.approx(by_hand(shift), rel=1e-3), shift
+    assert by_hand(0.5) > 5 * by_hand(-0.5)
+
+
+def test_visible_surface_gradients_match_finite_differences():
+    rng = np.random.default_rng(6)
+    centres, sizes, yaws = np.array([[0.5, 0.8, 12.0], [-4.0, 0.8, 20.0]]), np.array([[1.8, 1.5, 4.4], [2.0, 1.9, 5.0]]), np.array([0.3, 0.7])
+    clouds = [surface_cloud(centres[n], sizes[n], yaws[n], np.zeros(3), 30, rng, offset=-0.3) for n in range(2)]
+    term = losses.VisibleSurface([c[0] for c in clouds], [c[1] for c in clouds], np.array([2.0, 3.0]),
+                                 scale=0.2, reference_range=10.0, max_points=1000, quantile=0.1)
+    field = field_of(centres, sizes, yaws)
+    keys = ("centre", "size", "yaw")
+    ad, fd = ad_and_central_differences(field, keys, term.loss, {k: 1e-3 for k in keys})
+    for key in keys:
+        np.testing.assert_allclose(ad[key], fd[key], rtol=2e-2, atol=2e-3, err_msg=key)
+    assert abs(ad["centre"]).max() > 0.1 and abs(ad["size"]).max() > 0.1
+
+
 def eikonal_points(rng, n: int, count: int) -> np.ndarray:
     """Box-local points (units of half-extents) clear of edges and of the inner medial planes:
     0.9 (inside) or 1.3 (outside) along one axis, |other coordinates| <= 0.4."""
@@ -750,6 +817,33 @@ def test_shape_prior_enters_the_init_term_with_the_initial_boxes(scene):
                                                       init_yaw_dynamic=w_dyn, width_prior=0.0))
         result = BoxOptimiser(obs, gt, cfg, init_boxes=init).run()
         assert result.loss_history["init"][0] == pytest.approx(expected, abs=2e-3), (w, w_dyn)
+
+
+def test_visible_surface_enters_the_init_term_for_parked_boxes_only(scene):
+    """Every box gets points on its visible faces pushed 0.3 m in front of them: at step 0 the
+    init term (all other priors off, anchor at the start) is the visible-surface loss of the
+    parked boxes, with the moving boxes' points ignored; no points, or weight 0, no term."""
+    obs, gt = scene
+    rng = np.random.default_rng(7)
+    cam = obs.cam_to_opt[0][:3, 3]
+    clouds = [surface_cloud(b.centre, b.size, b.yaw, cam, 20, rng, offset=-0.3) for b in gt]
+    moving = np.array([b.dynamic for b in gt])
+    assert 0 < moving.sum() < len(gt)
+    base = quick(residual=False, steps=1)
+    sc = base.surface
+    expected = losses.VisibleSurface([None if m else c[0] for c, m in zip(clouds, moving)],
+                                     [None if m else c[1] for c, m in zip(clouds, moving)],
+                                     np.full(len(gt), 5.0), sc.scale, sc.reference_range, sc.max_points,
+                                     sc.quantile, seed=base.seed).loss(field_of(
+                                         np.stack([b.centre for b in gt]), np.stack([b.size for b in gt]),
+                                         np.array([b.yaw for b in gt])).decode())
+    expected = values(expected)[0]
+    assert expected > 0.01
+    for w, points, want in ((5.0, clouds, expected), (0.0, clouds, 0.0), (5.0, None, 0.0)):
+        cfg = base.replace(weights=dataclasses.replace(base.weights, init=0.0, init_dynamic=0.0, init_yaw=0.0,
+                                                       init_yaw_dynamic=0.0, width_prior=0.0, surface=w))
+        result = BoxOptimiser(obs, gt, cfg, init_boxes=gt, surface_points=points).run()
+        assert result.loss_history["init"][0] == pytest.approx(want, rel=1e-3, abs=1e-6), (w, points is None)
 
 
 def test_no_dynamic_instance_no_velocity(static_run, residual_run):

@@ -60,12 +60,16 @@ def confidence(boxes: list[Box3D], obs: Observations) -> np.ndarray:
 
 
 def initial_boxes(seq: Sequence, spec, obs: Observations, cfg: AutolabelConfig):
-    """``(start boxes, init reference or None, note)`` for the optimisation."""
+    """``(start boxes, init reference or None, note, surface points or None)`` for the
+    optimisation; surface points per box: ``(points, cameras)`` of its stereo cloud, or None."""
     defaults = default_initial_boxes(obs)
     if not cfg.init:
         dyn = cfg.velocity  # without initialisation every instance may move (velocity from 0)
-        return [Box3D(b.centre, b.size, b.yaw, np.zeros(3), dyn, b.instance_id) for b in defaults], None, "default boxes"
+        return ([Box3D(b.centre, b.size, b.yaw, np.zeros(3), dyn, b.instance_id) for b in defaults], None,
+                "default boxes", None)
     inits = initialise_target(seq, spec)
+    surface = [(inits[int(i)].fit_points, inits[int(i)].fit_cameras)
+               if int(i) in inits and inits[int(i)].fit_points is not None else None for i in obs.instance_ids]
     boxes = [inits[int(i)].to_box() if int(i) in inits else b for i, b in zip(obs.instance_ids, defaults)]
     missing = [int(i) for i in obs.instance_ids if int(i) not in inits]
     note = "stereo initialisation" + (f" (default box for {missing})" if missing else "")
@@ -75,7 +79,7 @@ def initial_boxes(seq: Sequence, spec, obs: Observations, cfg: AutolabelConfig):
     boxes = [dataclasses.replace(b, yaw=a.yaw) for b, a in zip(boxes, axes)]
     switched = [int(b.instance_id) for b, a in zip(boxes, axes) if a.switched]
     note += f"; axis turned for {switched}" if switched else ""
-    return boxes, boxes, note
+    return boxes, boxes, note, surface
 
 
 def process_target(task: TargetTask) -> TargetResult:
@@ -89,8 +93,8 @@ def process_target(task: TargetTask) -> TargetResult:
     obs = load_observations(seq, spec)
     if obs.num_instances == 0:
         return TargetResult(status="skipped", seconds=0.0, outputs=(), error="no target instances")
-    start, init_ref, note = initial_boxes(seq, spec, obs, cfg)
-    optimiser = BoxOptimiser(obs, start, cfg, init_boxes=init_ref)
+    start, init_ref, note, surface = initial_boxes(seq, spec, obs, cfg)
+    optimiser = BoxOptimiser(obs, start, cfg, init_boxes=init_ref, surface_points=surface)
     result = optimiser.run()
     index = np.array([int(np.flatnonzero(obs.instance_ids == i)[0]) for i in result.instance_ids])
     headings = decide_headings(result.boxes, index, obs, cfg.heading)

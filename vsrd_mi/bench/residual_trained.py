@@ -213,8 +213,8 @@ def run_target(frame: int, args) -> dict:
     cfg = PRESETS["default"]().replace(residual=True, steps=args.steps,
                                        warmup_steps=int(args.steps * PRESETS["default"]().warmup_steps
                                                         / PRESETS["default"]().steps))
-    start, init_ref, _ = initial_boxes(seq, spec, obs, cfg)
-    opt = BoxOptimiser(obs, start, cfg, init_boxes=init_ref)
+    start, init_ref, _, surface = initial_boxes(seq, spec, obs, cfg)
+    opt = BoxOptimiser(obs, start, cfg, init_boxes=init_ref, surface_points=surface)
     it, residual = opt.integrator, opt.integrator.field.residual
     untrained = {k: np.array(v) for k, v in residual.params.items()}
     state = None if args.load_states is None else np.load(args.load_states / state_name(frame))

@@ -20,6 +20,7 @@ from scipy.spatial import cKDTree
 from scipy.special import ndtr, stdtrit
 
 from ..geometry.boxes import Box3D, wrap_angle, yaw_from_direction
+from ..geometry.surface import footprint_ray_residuals
 from .config import FootprintConfig, InitConfig, OrientationConfig, VelocityConfig
 from .depth import bounding_region, depth_to_disparity, make_depth_source, matching_region, stereo_depth_in
 from .frames import StereoFrame
@@ -55,6 +56,9 @@ class InstanceInit:
         truncated: frame offsets where the instance's mask touches the image border.
         axis_seen: whether the yaw's length axis came from evidence (the velocity, or a cloud
             longer than a car is wide along it) rather than the road prior.
+        fit_points: (M, 3) the merged cloud the footprint was fitted to (target time,
+            optimisation frame; :func:`merged_cloud`), or None.
+        fit_cameras: (M, 3) the centre of the camera that saw each of ``fit_points``.
     """
 
     instance_id: int
@@ -72,6 +76,8 @@ class InstanceInit:
     velocity_effective_pairs: float = 0.0
     truncated: tuple[int, ...] = ()
     axis_seen: bool = True
+    fit_points: np.ndarray | None = field(default=None, repr=False)
+    fit_cameras: np.ndarray | None = field(default=None, repr=False)
 
     def to_box(self, default_size: tuple[float, float, float] = FootprintConfig.typical_size) -> Box3D:
         """The initial box (``default_size`` when no size was fitted); velocity kept as estimated."""
@@ -425,34 +431,11 @@ def yaw_from_velocity(velocity: np.ndarray) -> float:
 
 def ray_residuals(local: np.ndarray, cam_local: np.ndarray, half: np.ndarray,
                   reference_range: float) -> np.ndarray:
-    """Residuals of stereo points against a footprint rectangle, along their viewing rays (2D).
-
-    Stereo errors lie along the viewing ray and grow with the square of the range, so each point
-    is compared with the entry point of its ray (camera -> point) into the rectangle
-    ``|x| <= half`` (x-z footprint, box-local): the residual is the range difference scaled by
-    ``(reference_range / range)^2``, i.e. expressed as the equivalent error at
-    ``reference_range``. A ray that misses the rectangle gets the distance of the rectangle from
-    the ray's line (how far the box is off the observed silhouette), unscaled.
-    """
-    ray = local - cam_local
-    rng = np.linalg.norm(ray, axis=1)
-    d = ray / np.maximum(rng, 1e-9)[:, None]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        inv = np.where(np.abs(d) > 1e-12, 1.0 / d, np.inf)
-        t1, t2 = (-half - cam_local) * inv, (half - cam_local) * inv
-    t1 = np.where(np.isnan(t1), -np.inf, t1)
-    t2 = np.where(np.isnan(t2), np.inf, t2)
-    t_near = np.minimum(t1, t2).max(axis=1)
-    t_far = np.maximum(t1, t2).min(axis=1)
-    hit = (t_near <= t_far) & (t_far > 0)
-    res = np.empty(len(local))
-    res[hit] = (rng[hit] - np.maximum(t_near[hit], 0.0)) * (reference_range / np.maximum(rng[hit], 1e-9)) ** 2
-    if np.any(~hit):
-        corners = np.array([[-1, -1], [-1, 1], [1, -1], [1, 1]], float) * half
-        normal = np.stack([-d[~hit, 1], d[~hit, 0]], axis=1)
-        rel = corners[None, :, :] - cam_local[~hit, None, :]
-        res[~hit] = np.abs(np.einsum("nkd,nd->nk", rel, normal)).min(axis=1)
-    return res
+    """Residuals of stereo points ``local`` (N, 2; box-local x, z) seen from ``cam_local``
+    (N, 2) against the footprint rectangle ``|x| <= half``, along their viewing rays
+    (:func:`vsrd_mi.geometry.surface.footprint_ray_residuals`)."""
+    return footprint_ray_residuals(local[:, 0], local[:, 1], cam_local[:, 0], cam_local[:, 1],
+                                   float(half[0]), float(half[1]), reference_range)
 
 
 def fit_footprint(points: np.ndarray, yaw: float, cameras: np.ndarray,
@@ -552,7 +535,8 @@ def initialise_instance(instance_id: int, clouds: dict[int, np.ndarray],
                         reference_offset=ref, cloud_mean=cloud_mean, n_velocity_pairs=n_pairs,
                         velocity_standard_error=est.standard_error,
                         velocity_effective_pairs=est.effective_pairs,
-                        truncated=tuple(sorted(truncated)), axis_seen=axis_seen)
+                        truncated=tuple(sorted(truncated)), axis_seen=axis_seen,
+                        fit_points=pts, fit_cameras=cams)
 
 
 def touches_border(mask: np.ndarray, margin: int) -> bool:

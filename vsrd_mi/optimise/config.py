@@ -75,6 +75,10 @@ class LossWeights:
     #: two other development streets tried rose likewise): a catalogue this close to real widths
     #: can outweigh the masks. 0 switches it off.
     width_prior: float = 30.0
+    #: Visible-surface term (not in the paper; :class:`vsrd_mi.optimise.losses.VisibleSurface`):
+    #: parked boxes held where their stereo points show the car's faces (``surface``, in metres
+    #: at ``SurfaceConfig.reference_range``). 0 switches it off.
+    surface: float = 0.0
     #: Huber (smooth L1) transition, pixels.
     huber_beta: float = 1.0
     #: Projection loss form: "symmetric" (the paper) or "containment" (only mask-box parts outside
@@ -194,6 +198,34 @@ class ConsensusConfig:
 
 
 @dataclass(frozen=True)
+class SurfaceConfig:
+    """Settings of the visible-surface term (weight ``LossWeights.surface``); the same residual
+    the initialisation fits footprints with (:class:`vsrd_mi.init.config.FootprintConfig`'s
+    ``fit_loss_scale`` and ``reference_range`` have the same meaning and values)."""
+
+    #: Scale (m, at ``reference_range``) of the soft-L1 loss: residuals beyond it (outliers,
+    #: mirrors and wheels off the box faces) count linearly.
+    scale: float = 0.2
+    #: Range (m) at which residuals are expressed (scaled by ``(reference_range / range)^2``, the
+    #: growth of stereo depth noise with range).
+    reference_range: float = 10.0
+    #: Points per box (a fixed random subset of the merged cloud).
+    max_points: int = 256
+    #: Share of a box's points meant to lie in front of its faces: the residuals are weighted
+    #: ``1 - quantile`` in front and ``quantile`` behind (a smoothed quantile regression). A car's
+    #: stereo points lie behind its tight box's faces (the body curves in from the mirrors,
+    #: bumpers and wheel arches; windows and bonnet slope back), so the median (0.5) would put the
+    #: faces on the body's middle depth.
+    quantile: float = 0.1
+
+    def __post_init__(self) -> None:
+        if self.scale <= 0 or self.reference_range <= 0 or self.max_points < 1 or not 0 < self.quantile < 1:
+            raise ValueError(f"surface.scale and surface.reference_range must be > 0, surface.max_points >= 1 "
+                             f"and surface.quantile in (0, 1), got {self.scale}, {self.reference_range}, "
+                             f"{self.max_points}, {self.quantile}")
+
+
+@dataclass(frozen=True)
 class AxisConfig:
     """Length axis of parked cars from yaw hypotheses before the optimisation (not in the paper;
     :mod:`vsrd_mi.optimise.axis`)."""
@@ -309,6 +341,7 @@ class AutolabelConfig:
     consensus: ConsensusConfig = field(default_factory=ConsensusConfig)
     heading: HeadingConfig = field(default_factory=HeadingConfig)
     axis: AxisConfig = field(default_factory=AxisConfig)
+    surface: SurfaceConfig = field(default_factory=SurfaceConfig)
 
     def replace(self, **kw) -> "AutolabelConfig":
         return dataclasses.replace(self, **kw)
@@ -361,6 +394,7 @@ class AutolabelConfig:
         d["consensus"] = ConsensusConfig(**d.get("consensus", {}))
         d["heading"] = HeadingConfig(**d.get("heading", {}))
         d["axis"] = AxisConfig(**d.get("axis", {}))
+        d["surface"] = SurfaceConfig(**d.get("surface", {}))
         return AutolabelConfig(**d)
 
 

@@ -17,6 +17,7 @@ from vsrd_plugins.sdf import DecodedBoxes, InstanceField, box_sdf_local
 from ..geometry import boxes2d
 from ..geometry.boxes import CORNER_SIGNS
 from ..geometry.camera import NEAR_PLANE, footprint
+from ..geometry.surface import footprint_ray_residuals
 from ..geometry.vehicle_sizes import tight_width
 from ..geometry.xp import drjit_namespace
 from .config import CarProfile
@@ -305,6 +306,82 @@ class WidthPrior:
         """``sum_n w_n |width_n - tight_width(length_n, height_n)| / N`` (metres)."""
         expected = tight_width(2.0 * dr.detach(dec.half[2]), 2.0 * dr.detach(dec.half[1]))
         return dr.sum(self.w * dr.abs(2.0 * dec.half[0] - expected)) / max(self.count, 1)
+
+
+def soft_l1(r, scale: float):
+    """``scale (sqrt(1 + (r / scale)^2) - 1)``: ``r^2 / (2 scale)`` near 0, ``|r| - scale`` far
+    (metres in, metres out; half of SciPy's ``soft_l1`` loss divided by ``scale``)."""
+    z = r / scale
+    return scale * (dr.sqrt(1.0 + z * z) - 1.0)
+
+
+class VisibleSurface:
+    """Parked boxes held on the visible surface their stereo points show.
+
+    The mask boxes let a box trade its range against its size (a box nearer and smaller projects
+    alike), and the init anchor holds the initial centre, whose range came with an assumed length.
+    This term holds what the stereo cloud measures instead: where the faces it saw lie. Each point
+    is compared with the entry of its viewing ray into the box's footprint
+    (:func:`vsrd_mi.geometry.surface.footprint_ray_residuals`, range-scaled to
+    ``reference_range``), through :func:`soft_l1` of ``scale``; a box's term is the mean over its
+    points times its weight, and the loss is the sum over boxes divided by their number.
+
+    ``points[n]`` / ``cameras[n]`` are (M, 3) arrays in the optimisation frame (static boxes: the
+    points do not move), or None for a box without points (weight 0). At most ``max_points`` per
+    box are kept (a fixed random subset drawn with ``seed``).
+    """
+
+    def __init__(self, points: list, cameras: list, weights: np.ndarray, scale: float,
+                 reference_range: float, max_points: int, quantile: float, seed: int = 0):
+        rng = np.random.default_rng(seed)
+        self.count = len(points)
+        self.quantile = float(quantile)
+        self.scale, self.reference_range = float(scale), float(reference_range)
+        box, lane_w, pts, cams = [], [], [], []
+        for n, (p, c) in enumerate(zip(points, cameras)):
+            if p is None or len(p) == 0 or weights[n] <= 0:
+                continue
+            keep = np.sort(rng.choice(len(p), max_points, replace=False)) if len(p) > max_points else slice(None)
+            p, c = np.asarray(p)[keep], np.asarray(c)[keep]
+            box.append(np.full(len(p), n))
+            lane_w.append(np.full(len(p), weights[n] / len(p)))
+            pts.append(p)
+            cams.append(c)
+        self.lanes = int(sum(len(b) for b in box))
+        if self.lanes:
+            pts, cams = np.concatenate(pts), np.concatenate(cams)
+            self.box = to_uint(np.concatenate(box))
+            self.w = to_float(np.concatenate(lane_w))
+            self.points = (to_float(pts[:, 0]), to_float(pts[:, 2]))
+            self.cameras = (to_float(cams[:, 0]), to_float(cams[:, 2]))
+
+    @property
+    def active(self) -> bool:
+        """Whether any box has points and a non-zero weight."""
+        return self.lanes > 0
+
+    def residuals(self, dec: DecodedBoxes) -> mi.Float:
+        """Each point's range-scaled residual against its box (metres at ``reference_range``)."""
+        def g(a):
+            return dr.gather(mi.Float, a, self.box)
+
+        cx, cz, cos, sin = g(dec.centre[0]), g(dec.centre[2]), g(dec.cos), g(dec.sin)
+
+        def local(x, z):
+            dx, dz = x - cx, z - cz
+            return cos * dx - sin * dz, sin * dx + cos * dz
+
+        (px, pz), (qx, qz) = local(*self.points), local(*self.cameras)
+        return footprint_ray_residuals(px, pz, qx, qz, g(dec.half[0]), g(dec.half[2]),
+                                       self.reference_range, xp=drjit_namespace())
+
+    def loss(self, dec: DecodedBoxes) -> mi.Float:
+        """``sum_n w_n mean_k soft_l1(r_nk) / N`` (metres)."""
+        if not self.active:
+            return mi.Float(0.0)
+        r = self.residuals(dec)
+        side = dr.select(r < 0.0, 1.0 - self.quantile, self.quantile)
+        return dr.sum(self.w * side * soft_l1(r, self.scale)) / max(self.count, 1)
 
 
 def shape_prior_loss(dec: DecodedBoxes, size_init: np.ndarray, yaw_init: np.ndarray,

@@ -139,7 +139,7 @@ class BoxOptimiser:
     """Optimises the boxes of one target frame (see module docstring)."""
 
     def __init__(self, obs: Observations, boxes: list[Box3D], cfg: AutolabelConfig,
-                 init_boxes: list[Box3D] | None = None):
+                 init_boxes: list[Box3D] | None = None, surface_points: list | None = None):
         if obs.num_instances == 0:
             raise ValueError(f"target {obs.target}: no instances to optimise")
         for name in ("cam_to_opt", "K"):
@@ -164,6 +164,8 @@ class BoxOptimiser:
         self.start = self.latents.initial(np.stack([b.centre for b in boxes]), np.stack([b.size for b in boxes]),
                                           np.array([b.yaw for b in boxes]), np.stack([b.velocity for b in boxes]))
         self.init_boxes = init_boxes
+        #: per box: (points (M, 3), their cameras (M, 3)) of its stereo cloud, or None
+        self.surface_points = surface_points
         # supervision frames: target + sources
         self.frames = np.flatnonzero(obs.is_source | (np.arange(obs.num_frames) == 0))
         self.sampler = RaySampler(obs, self.frames, cfg.rays_per_step, cfg.seed)
@@ -250,8 +252,10 @@ class BoxOptimiser:
             if not prior.active:
                 prior = None
         width_prior = losses.WidthPrior(np.full(self.n, w.width_prior)) if w.width_prior > 0 else None
-        # the terms logged together as "init": the anchor and the priors on size, yaw and width
-        init_terms = [t for t in (anchor, prior, width_prior) if t is not None]
+        surface = self._visible_surface()
+        # the terms logged together as "init": the anchor, the priors on size, yaw and width and
+        # the visible surface
+        init_terms = [t for t in (anchor, prior, width_prior, surface) if t is not None]
         history = {k: [] for k in ("total", "projection", "silhouette", "eikonal", "init")}
         conv = Convergence(cfg.early_stop.window, cfg.early_stop.rel_loss, cfg.early_stop.box_tol)
         sdf_evals = 0
@@ -324,6 +328,19 @@ class BoxOptimiser:
                                   steps=step + 1, seconds=_time.time() - t0, loss_history=history,
                                   stopped_early=stopped, sdf_evaluations=sdf_evals,
                                   projected_lanes=self._lanes.count if self._lanes else 0)
+
+    def _visible_surface(self) -> losses.VisibleSurface | None:
+        """The visible-surface term of the parked boxes that have points (None when off)."""
+        w, sc = self.cfg.weights.surface, self.cfg.surface
+        if w <= 0 or self.surface_points is None:
+            return None
+        # moving cars' clouds are spread over their path; the init anchor holds those
+        parked = [sp if sp is not None and not d else (None, None)
+                  for sp, d in zip(self.surface_points, self.dynamic)]
+        term = losses.VisibleSurface([p for p, _ in parked], [c for _, c in parked], np.full(self.n, w),
+                                     sc.scale, sc.reference_range, sc.max_points, sc.quantile,
+                                     seed=self.cfg.seed)
+        return term if term.active else None
 
     def _box_vector(self) -> np.ndarray:
         b = self.integrator.boxes()
