@@ -77,8 +77,12 @@ class LossWeights:
     width_prior: float = 30.0
     #: Visible-surface term (not in the paper; :class:`vsrd_mi.optimise.losses.VisibleSurface`):
     #: parked boxes held where their stereo points show the car's faces (``surface``, in metres
-    #: at ``SurfaceConfig.reference_range``). 0 switches it off.
-    surface: float = 0.0
+    #: at ``SurfaceConfig.reference_range``). The mask boxes alone let a parked box trade its
+    #: range against its size. Weights 0 / 10 / 30 / 100 gave the parked cars of the development
+    #: seeds 0.678 / 0.692 / 0.704 / 0.710 mean 3D IoU (118 cars, 12 targets); 30 is the largest
+    #: that raised every development sequence and kept cars within 10 m (at 100 their boxes sat
+    #: ~5 cm too far and lost 0.02 IoU). 0 switches it off.
+    surface: float = 30.0
     #: Huber (smooth L1) transition, pixels.
     huber_beta: float = 1.0
     #: Projection loss form: "symmetric" (the paper) or "containment" (only mask-box parts outside
