@@ -63,3 +63,19 @@ def footprint_ray_residuals(x, z, cam_x, cam_z, half_x, half_z, reference_range:
     scale = reference_range / rng
     along = (rng - xp.maximum(t_near, 0.0)) * scale * scale
     return xp.where(hit, along, _line_offset(cam_x, cam_z, dx, dz, half_x, half_z, xp))
+
+
+def soft_l1(r, scale: float, xp: SimpleNamespace = NP):
+    """``scale (sqrt(1 + (r / scale)^2) - 1)``: ``r^2 / (2 scale)`` near 0, ``|r| - scale`` far
+    (metres in, metres out; half of SciPy's ``soft_l1`` loss divided by ``scale``)."""
+    z = r / scale
+    return scale * (xp.sqrt(1.0 + z * z) - 1.0)
+
+
+def quantile_soft_l1(r, scale: float, quantile: float, xp: SimpleNamespace = NP):
+    """:func:`soft_l1` weighted ``1 - quantile`` for residuals ``r < 0`` (a point in front of the
+    face its ray enters) and ``quantile`` for the others. Its minimiser is a quantile of the
+    residuals where they spread much wider than ``scale`` and an expectile where they lie within
+    it: below 0.5 it leaves fewer points in front of the faces than behind them, ``quantile`` of
+    them or somewhat more. 0.5 is half the symmetric soft L1."""
+    return xp.where(r < 0.0, 1.0 - quantile, quantile) * soft_l1(r, scale, xp)

@@ -20,7 +20,7 @@ from scipy.spatial import cKDTree
 from scipy.special import ndtr, stdtrit
 
 from ..geometry.boxes import Box3D, wrap_angle, yaw_from_direction
-from ..geometry.surface import footprint_ray_residuals
+from ..geometry.surface import footprint_ray_residuals, quantile_soft_l1
 from .config import FootprintConfig, InitConfig, OrientationConfig, VelocityConfig
 from .depth import bounding_region, depth_to_disparity, make_depth_source, matching_region, stereo_depth_in
 from .frames import StereoFrame
@@ -453,8 +453,9 @@ def fit_footprint(points: np.ndarray, yaw: float, cameras: np.ndarray,
 
     Refinement: the edge percentiles are pulled towards the cameras by the stereo noise (which
     grows with the square of the depth), so the horizontal centre is then refined by robust least
-    squares (``scipy.optimize.least_squares``, soft-L1 loss of scale ``cfg.fit_loss_scale``) of
-    :func:`ray_residuals`: every point is compared with where its viewing ray enters the box, so
+    squares (``scipy.optimize.least_squares`` on
+    :func:`vsrd_mi.geometry.surface.quantile_soft_l1` of scale ``cfg.fit_loss_scale`` and quantile
+    ``cfg.fit_quantile``) of :func:`ray_residuals`: every point is compared with where its viewing ray enters the box, so
     noise averages out instead of biasing an edge, and rays missing the box pull it back under
     the observed silhouette. Vertically the box is centred on the cloud's
     extent (roof and underside are rarely seen face-on from a car-mounted camera).
@@ -485,9 +486,11 @@ def fit_footprint(points: np.ndarray, yaw: float, cameras: np.ndarray,
         half[k] = 0.5 * dim
     if cfg.refine:
         def residuals(c: np.ndarray) -> np.ndarray:
-            return ray_residuals(local - c, cam_local - c, half, cfg.reference_range)
-        fit = least_squares(residuals, centre_local, loss="soft_l1", f_scale=cfg.fit_loss_scale,
-                            x_scale=1.0, diff_step=1e-3)
+            # sum f^2 = 2 scale sum quantile_soft_l1(r): least squares on the signed root
+            r = ray_residuals(local - c, cam_local - c, half, cfg.reference_range)
+            rho = quantile_soft_l1(r, cfg.fit_loss_scale, cfg.fit_quantile)
+            return np.sign(r) * np.sqrt(2.0 * cfg.fit_loss_scale * rho)
+        fit = least_squares(residuals, centre_local, x_scale=1.0, diff_step=1e-3)
         if fit.success and np.linalg.norm(fit.x - centre_local) <= cfg.max_refine_shift:
             centre_local = fit.x
     centre = np.zeros(3)

@@ -205,6 +205,11 @@ class FootprintConfig:
     #: Range (m) at which the depth residuals of the refinement are expressed (they are scaled by
     #: ``(reference_range / range)^2``, the growth of stereo depth noise with range).
     reference_range: float = 10.0
+    #: Share of the points the refined footprint leaves in front of its faces (the residuals
+    #: weigh ``1 - fit_quantile`` in front, ``fit_quantile`` behind;
+    #: :func:`vsrd_mi.geometry.surface.quantile_soft_l1`). 0.5 fits the faces to the points'
+    #: median depth.
+    fit_quantile: float = 0.5
     #: A refinement moving the centre further than this (m, about a car length) from its initial
     #: value is rejected as diverged. Far cars need shifts of ~2 m: their edge percentiles sit
     #: well in front of the surface (depth noise ~0.8 m at 33 m on KITTI-360).

@@ -215,8 +215,9 @@ class SurfaceConfig:
     reference_range: float = 10.0
     #: Points per box (a fixed random subset of the merged cloud).
     max_points: int = 256
-    #: Share of a box's points meant to lie in front of its faces: the residuals are weighted
-    #: ``1 - quantile`` in front and ``quantile`` behind (a smoothed quantile regression). A car's
+    #: About the share of a box's points left in front of its faces: the residuals are weighted
+    #: ``1 - quantile`` in front and ``quantile`` behind
+    #: (:func:`vsrd_mi.geometry.surface.quantile_soft_l1`). A car's
     #: stereo points lie behind its tight box's faces (the body curves in from the mirrors,
     #: bumpers and wheel arches; windows and bonnet slope back), so the median (0.5) would put the
     #: faces on the body's middle depth.

@@ -17,7 +17,7 @@ from vsrd_plugins.sdf import DecodedBoxes, InstanceField, box_sdf_local
 from ..geometry import boxes2d
 from ..geometry.boxes import CORNER_SIGNS
 from ..geometry.camera import NEAR_PLANE, footprint
-from ..geometry.surface import footprint_ray_residuals
+from ..geometry.surface import footprint_ray_residuals, quantile_soft_l1
 from ..geometry.vehicle_sizes import tight_width
 from ..geometry.xp import drjit_namespace
 from .config import CarProfile
@@ -308,13 +308,6 @@ class WidthPrior:
         return dr.sum(self.w * dr.abs(2.0 * dec.half[0] - expected)) / max(self.count, 1)
 
 
-def soft_l1(r, scale: float):
-    """``scale (sqrt(1 + (r / scale)^2) - 1)``: ``r^2 / (2 scale)`` near 0, ``|r| - scale`` far
-    (metres in, metres out; half of SciPy's ``soft_l1`` loss divided by ``scale``)."""
-    z = r / scale
-    return scale * (dr.sqrt(1.0 + z * z) - 1.0)
-
-
 class VisibleSurface:
     """Parked boxes held on the visible surface their stereo points show.
 
@@ -323,7 +316,8 @@ class VisibleSurface:
     This term holds what the stereo cloud measures instead: where the faces it saw lie. Each point
     is compared with the entry of its viewing ray into the box's footprint
     (:func:`vsrd_mi.geometry.surface.footprint_ray_residuals`, range-scaled to
-    ``reference_range``), through :func:`soft_l1` of ``scale``; a box's term is the mean over its
+    ``reference_range``), through :func:`vsrd_mi.geometry.surface.quantile_soft_l1` of ``scale``
+    and ``quantile``; a box's term is the mean over its
     points times its weight, and the loss is the sum over boxes divided by their number.
 
     ``points[n]`` / ``cameras[n]`` are (M, 3) arrays in the optimisation frame (static boxes: the
@@ -376,12 +370,12 @@ class VisibleSurface:
                                        self.reference_range, xp=drjit_namespace())
 
     def loss(self, dec: DecodedBoxes) -> mi.Float:
-        """``sum_n w_n mean_k soft_l1(r_nk) / N`` (metres)."""
+        """``sum_n w_n mean_k quantile_soft_l1(r_nk) / N`` (metres)."""
         if not self.active:
             return mi.Float(0.0)
         r = self.residuals(dec)
-        side = dr.select(r < 0.0, 1.0 - self.quantile, self.quantile)
-        return dr.sum(self.w * side * soft_l1(r, self.scale)) / max(self.count, 1)
+        rho = quantile_soft_l1(r, self.scale, self.quantile, drjit_namespace())
+        return dr.sum(self.w * rho) / max(self.count, 1)
 
 
 def shape_prior_loss(dec: DecodedBoxes, size_init: np.ndarray, yaw_init: np.ndarray,
