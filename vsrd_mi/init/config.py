@@ -207,9 +207,11 @@ class FootprintConfig:
     reference_range: float = 10.0
     #: Share of the points the refined footprint leaves in front of its faces (the residuals
     #: weigh ``1 - fit_quantile`` in front, ``fit_quantile`` behind;
-    #: :func:`vsrd_mi.geometry.surface.quantile_soft_l1`). 0.5 fits the faces to the points'
-    #: median depth.
-    fit_quantile: float = 0.5
+    #: :func:`vsrd_mi.geometry.surface.quantile_soft_l1`). The same as the optimisation's
+    #: visible-surface term (``SurfaceConfig.quantile``, chosen on the development seeds): a car's
+    #: stereo points lie behind its tight box's faces (docs/accuracy.md), so fitting the faces to
+    #: the points' median depth (0.5) started boxes too far, and the init anchor held them there.
+    fit_quantile: float = 0.1
     #: A refinement moving the centre further than this (m, about a car length) from its initial
     #: value is rejected as diverged. Far cars need shifts of ~2 m: their edge percentiles sit
     #: well in front of the surface (depth noise ~0.8 m at 33 m on KITTI-360).
