@@ -1,8 +1,12 @@
 """Configuration presets and the CLI's ``--set KEY=VALUE`` overrides."""
 
 import dataclasses
+import json
 
 import pytest
+
+from vsrd_mi.batch.tasks import TargetTask
+from vsrd_mi.init.config import InitConfig
 
 from vsrd_mi.optimise.config import (LONG_SCHEDULE_SHAPE_PRIOR, AutolabelConfig, CarProfile, LossWeights,
                                      default_config, paper_config)
@@ -37,6 +41,25 @@ def test_overrides_set_nested_and_top_level_fields():
     corners = default_config().with_overrides(["car_profile.clearance=0", "car_profile.overhang=0",
                                                  "car_profile.corner=0", "car_profile.mirror=0"])
     assert not corners.car_profile.enabled and AutolabelConfig.from_dict(corners.to_dict()) == corners
+
+
+def test_the_stereo_initialisation_is_part_of_the_config():
+    """Its settings are ``--set`` overridable, survive the JSON round trip the batch tasks make
+    (nested groups, tuples) and so change a task's fingerprint."""
+    cfg = default_config().with_overrides(["stereo_init.footprint.fit_quantile=0.5",
+                                           "stereo_init.agreement_share=0"])
+    assert cfg.stereo_init.footprint.fit_quantile == 0.5 and cfg.stereo_init.agreement_share == 0.0
+    assert default_config().stereo_init == InitConfig()
+    for c in (default_config(), cfg):
+        back = AutolabelConfig.from_dict(json.loads(json.dumps(c.to_dict())))
+        assert back == c and isinstance(back.stereo_init.footprint.typical_size, tuple)
+    task = TargetTask(root="r", sequence="s", frame=3, output_dir="o", config=default_config().to_dict())
+    other = dataclasses.replace(task, config=cfg.to_dict())
+    assert task.fingerprint() != other.fingerprint()
+    with pytest.raises(ValueError, match="stereo_init.footprint.nope"):
+        default_config().with_overrides(["stereo_init.footprint.nope=1"])
+    with pytest.raises(TypeError):
+        InitConfig.from_dict({"footprint": {"nope": 1}})
 
 
 @pytest.mark.parametrize("item, message", [

@@ -67,7 +67,7 @@ def initial_boxes(seq: Sequence, spec, obs: Observations, cfg: AutolabelConfig):
         dyn = cfg.velocity  # without initialisation every instance may move (velocity from 0)
         return ([Box3D(b.centre, b.size, b.yaw, np.zeros(3), dyn, b.instance_id) for b in defaults], None,
                 "default boxes", None)
-    inits = initialise_target(seq, spec)
+    inits = initialise_target(seq, spec, cfg.stereo_init)
     surface = [(inits[int(i)].fit_points, inits[int(i)].fit_cameras)
                if int(i) in inits and inits[int(i)].fit_points is not None else None for i in obs.instance_ids]
     boxes = [inits[int(i)].to_box() if int(i) in inits else b for i, b in zip(obs.instance_ids, defaults)]

@@ -12,6 +12,8 @@ import dataclasses
 import json
 from dataclasses import dataclass, field
 
+from ..init.config import InitConfig
+
 
 #: Forms of the projection loss (see :func:`vsrd_mi.optimise.losses.projection_loss`).
 PROJECTION_MODES = ("symmetric", "containment")
@@ -347,6 +349,9 @@ class AutolabelConfig:
     heading: HeadingConfig = field(default_factory=HeadingConfig)
     axis: AxisConfig = field(default_factory=AxisConfig)
     surface: SurfaceConfig = field(default_factory=SurfaceConfig)
+    #: The stereo initialisation's settings (used when ``init`` is on; docs/method.md §6), e.g.
+    #: ``--set stereo_init.footprint.fit_quantile=0.5``.
+    stereo_init: InitConfig = field(default_factory=InitConfig)
 
     def replace(self, **kw) -> "AutolabelConfig":
         return dataclasses.replace(self, **kw)
@@ -400,6 +405,7 @@ class AutolabelConfig:
         d["heading"] = HeadingConfig(**d.get("heading", {}))
         d["axis"] = AxisConfig(**d.get("axis", {}))
         d["surface"] = SurfaceConfig(**d.get("surface", {}))
+        d["stereo_init"] = InitConfig.from_dict(d.get("stereo_init", {}))
         return AutolabelConfig(**d)
 
 
