@@ -439,7 +439,7 @@ def ray_residuals(local: np.ndarray, cam_local: np.ndarray, half: np.ndarray,
 
 
 def fit_footprint(points: np.ndarray, yaw: float, cameras: np.ndarray,
-                  cfg: FootprintConfig) -> tuple[np.ndarray, np.ndarray]:
+                  cfg: FootprintConfig, quantile: float | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Centre and size of a box of (at least) typical car size behind the visible surface.
 
     Size: along each box axis the cloud spans ``[lo, hi]`` (robust percentiles); the box extent is
@@ -454,10 +454,10 @@ def fit_footprint(points: np.ndarray, yaw: float, cameras: np.ndarray,
     Refinement: the edge percentiles are pulled towards the cameras by the stereo noise (which
     grows with the square of the depth), so the horizontal centre is then refined by robust least
     squares (``scipy.optimize.least_squares`` on
-    :func:`vsrd_mi.geometry.surface.quantile_soft_l1` of scale ``cfg.fit_loss_scale`` and quantile
-    ``cfg.fit_quantile``) of :func:`ray_residuals`: every point is compared with where its viewing ray enters the box, so
-    noise averages out instead of biasing an edge, and rays missing the box pull it back under
-    the observed silhouette. Vertically the box is centred on the cloud's
+    :func:`vsrd_mi.geometry.surface.quantile_soft_l1` of scale ``cfg.fit_loss_scale`` and
+    ``quantile``) of :func:`ray_residuals`: every point is compared with where its viewing ray
+    enters the box, so noise averages out instead of biasing an edge, and rays missing the box
+    pull it back under the observed silhouette. Vertically the box is centred on the cloud's
     extent (roof and underside are rarely seen face-on from a car-mounted camera).
 
     Args:
@@ -465,6 +465,7 @@ def fit_footprint(points: np.ndarray, yaw: float, cameras: np.ndarray,
         yaw: box yaw.
         cameras: (N, 3) centre of the camera that saw each point, relative to the instance at
             the target time.
+        quantile: the refinement's quantile (default ``cfg.fit_quantile``).
     Returns (centre (3,), size (3,) = (w, h, l)).
     """
     length_ax, width_ax = _axes(yaw)
@@ -484,11 +485,12 @@ def fit_footprint(points: np.ndarray, yaw: float, cameras: np.ndarray,
         else:
             centre_local[k] = 0.5 * (lo + hi)
         half[k] = 0.5 * dim
+    quantile = cfg.fit_quantile if quantile is None else quantile
     if cfg.refine:
         def residuals(c: np.ndarray) -> np.ndarray:
             # sum f^2 = 2 scale sum quantile_soft_l1(r): least squares on the signed root
             r = ray_residuals(local - c, cam_local - c, half, cfg.reference_range)
-            rho = quantile_soft_l1(r, cfg.fit_loss_scale, cfg.fit_quantile)
+            rho = quantile_soft_l1(r, cfg.fit_loss_scale, quantile)
             return np.sign(r) * np.sqrt(2.0 * cfg.fit_loss_scale * rho)
         fit = least_squares(residuals, centre_local, x_scale=1.0, diff_step=1e-3)
         if fit.success and np.linalg.norm(fit.x - centre_local) <= cfg.max_refine_shift:
@@ -530,7 +532,8 @@ def initialise_instance(instance_id: int, clouds: dict[int, np.ndarray],
     yaw = yaw_from_velocity(velocity) if dynamic else dominant_yaw(pts, cfg.orientation)
     axis_seen = dynamic or length_axis_seen(pts, yaw, cfg.orientation)
     if fp.enabled:
-        centre, size = fit_footprint(pts, yaw, cams, fp)
+        centre, size = fit_footprint(pts, yaw, cams, fp,
+                                     fp.fit_quantile_dynamic if dynamic else fp.fit_quantile)
     else:
         centre, size = cloud_mean.copy(), None
     return InstanceInit(instance_id=instance_id, centre=centre, yaw=yaw, velocity=velocity,
