@@ -7,7 +7,6 @@ import pytest
 
 from vsrd_mi.batch.tasks import TargetTask
 from vsrd_mi.init.config import InitConfig
-
 from vsrd_mi.optimise.config import (LONG_SCHEDULE_SHAPE_PRIOR, AutolabelConfig, CarProfile, LossWeights,
                                      default_config, paper_config)
 

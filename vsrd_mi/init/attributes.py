@@ -485,8 +485,9 @@ def fit_footprint(points: np.ndarray, yaw: float, cameras: np.ndarray,
         else:
             centre_local[k] = 0.5 * (lo + hi)
         half[k] = 0.5 * dim
-    quantile = cfg.fit_quantile if quantile is None else quantile
     if cfg.refine:
+        quantile = cfg.fit_quantile if quantile is None else quantile
+
         def residuals(c: np.ndarray) -> np.ndarray:
             # sum f^2 = 2 scale sum quantile_soft_l1(r): least squares on the signed root
             r = ray_residuals(local - c, cam_local - c, half, cfg.reference_range)

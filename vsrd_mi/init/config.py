@@ -7,8 +7,9 @@ Units: metres, pixels, frame indices (velocity is in metres per frame index).
 
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass, field
+
+from ..config_io import dataclass_from_dict
 
 #: Depth sources understood by :func:`vsrd_mi.init.depth.make_depth_source`.
 DEPTH_MODES = ("sgbm", "dir", "none")
@@ -287,7 +288,7 @@ class InitConfig:
     def from_dict(d: dict) -> "InitConfig":
         """The configuration ``dataclasses.asdict`` (or its JSON) gave: nested groups rebuilt,
         lists back to tuples where the field holds a tuple; an unknown key raises TypeError."""
-        return _from_dict(InitConfig, d)
+        return dataclass_from_dict(InitConfig, d)
 
     def __post_init__(self) -> None:
         if self.depth_mode not in DEPTH_MODES:
@@ -297,17 +298,3 @@ class InitConfig:
         if not 0.0 <= self.agreement_share <= 1.0 or self.agreement_distance <= 0:
             raise ValueError(f"agreement_share must be in [0, 1] and agreement_distance > 0, got "
                              f"{self.agreement_share}, {self.agreement_distance}")
-
-
-def _from_dict(cls: type, d: dict):
-    """``cls`` built from a (JSON) dict of its fields, recursing into nested dataclass fields."""
-    defaults = cls()
-    kwargs = {}
-    for key, value in d.items():
-        default = getattr(defaults, key, None)
-        if dataclasses.is_dataclass(default) and isinstance(value, dict):
-            value = _from_dict(type(default), value)
-        elif isinstance(default, tuple) and isinstance(value, list):
-            value = tuple(value)
-        kwargs[key] = value
-    return cls(**kwargs)

@@ -12,6 +12,7 @@ import dataclasses
 import json
 from dataclasses import dataclass, field
 
+from ..config_io import dataclass_from_dict
 from ..init.config import InitConfig
 
 
@@ -395,18 +396,9 @@ class AutolabelConfig:
 
     @staticmethod
     def from_dict(d: dict) -> "AutolabelConfig":
-        d = dict(d)
-        d["weights"] = LossWeights(**d.get("weights", {}))
-        d["car_profile"] = CarProfile(**d.get("car_profile", {}))
-        d["lr"] = LearningRates(**d.get("lr", {}))
-        d["schedule"] = Schedule(**d.get("schedule", {}))
-        d["early_stop"] = EarlyStop(**d.get("early_stop", {}))
-        d["consensus"] = ConsensusConfig(**d.get("consensus", {}))
-        d["heading"] = HeadingConfig(**d.get("heading", {}))
-        d["axis"] = AxisConfig(**d.get("axis", {}))
-        d["surface"] = SurfaceConfig(**d.get("surface", {}))
-        d["stereo_init"] = InitConfig.from_dict(d.get("stereo_init", {}))
-        return AutolabelConfig(**d)
+        """The configuration :meth:`to_dict` (or its JSON) gave; missing fields keep their
+        defaults (:func:`vsrd_mi.config_io.dataclass_from_dict`)."""
+        return dataclass_from_dict(AutolabelConfig, d)
 
 
 #: Weight of the size / yaw prior in long schedules (see ``LossWeights.init_size``).

@@ -317,8 +317,8 @@ class VisibleSurface:
     is compared with the entry of its viewing ray into the box's footprint
     (:func:`vsrd_mi.geometry.surface.footprint_ray_residuals`, range-scaled to
     ``reference_range``), through :func:`vsrd_mi.geometry.surface.quantile_soft_l1` of ``scale``
-    and ``quantile``; a box's term is the mean over its
-    points times its weight, and the loss is the sum over boxes divided by their number.
+    and ``quantile``; a box's term is the mean over its points times its weight, and the loss is
+    the sum over boxes divided by their number.
 
     ``points[n]`` / ``cameras[n]`` are (M, 3) arrays in the optimisation frame (static boxes: the
     points do not move), or None for a box without points (weight 0). At most ``max_points`` per
