@@ -7,11 +7,11 @@ import pytest
 
 from vsrd_mi.batch.tasks import TargetTask
 from vsrd_mi.init.config import InitConfig
-from vsrd_mi.optimise.config import (LONG_SCHEDULE_SHAPE_PRIOR, AutolabelConfig, CarProfile, LossWeights,
-                                     default_config, paper_config)
+from vsrd_mi.optimise.config import (LONG_SCHEDULE_SHAPE_PRIOR, PAPER_SILHOUETTE_WEIGHT, AutolabelConfig, CarProfile,
+                                     LossWeights, default_config, paper_config)
 
 
-def test_presets_differ_in_budget_and_the_long_schedules_shape_prior_only():
+def test_presets_differ_in_budget_the_silhouette_term_and_the_long_schedules_shape_prior_only():
     d, p = default_config(), paper_config()
     assert (p.steps, p.warmup_steps, p.rays_per_step, p.sampling) == (3000, 1000, 1000, "dense")
     assert not p.early_stop.enabled and d.early_stop.enabled
@@ -22,7 +22,9 @@ def test_presets_differ_in_budget_and_the_long_schedules_shape_prior_only():
     for k in ("init_yaw", "init_yaw_dynamic"):  # ... with the yaw priors, in both presets
         assert getattr(p.weights, k) == getattr(d.weights, k) > LONG_SCHEDULE_SHAPE_PRIOR
     assert all(getattr(p.weights, k) == LONG_SCHEDULE_SHAPE_PRIOR > 0 for k in prior)
-    assert dataclasses.replace(p.weights, **{k: 0.0 for k in prior}) == d.weights  # nothing else differs
+    assert d.weights.silhouette == 0.0 and p.weights.silhouette == PAPER_SILHOUETTE_WEIGHT == 1.0
+    # nothing else differs
+    assert dataclasses.replace(p.weights, silhouette=0.0, **{k: 0.0 for k in prior}) == d.weights
     assert p.car_profile == d.car_profile == CarProfile() and d.car_profile.enabled
 
 
@@ -40,6 +42,15 @@ def test_overrides_set_nested_and_top_level_fields():
     corners = default_config().with_overrides(["car_profile.clearance=0", "car_profile.overhang=0",
                                                  "car_profile.corner=0", "car_profile.mirror=0"])
     assert not corners.car_profile.enabled and AutolabelConfig.from_dict(corners.to_dict()) == corners
+
+
+def test_the_residual_field_needs_the_silhouette_term():
+    """The residual field acts only through the rendered silhouettes: switching it on without
+    their loss is refused with the fix in the message; with it, it is accepted."""
+    with pytest.raises(ValueError, match="residual=true needs weights.silhouette > 0"):
+        default_config().with_overrides(["residual=true"])
+    cfg = default_config().with_overrides(["residual=true", "weights.silhouette=1"])
+    assert cfg.residual and cfg.weights.silhouette == 1.0
 
 
 def test_the_stereo_initialisation_is_part_of_the_config():

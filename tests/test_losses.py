@@ -683,8 +683,10 @@ def scene():
 
 
 def quick(**kw):
-    return default_config().replace(**{"steps": 4, "warmup_steps": 2, "rays_per_step": 64, "eikonal_points": 16,
-                                       "residual": True, **kw})
+    """A 4-step run that renders (the paper's silhouette weight) with the residual from step 2."""
+    cfg = default_config()
+    return cfg.replace(**{"steps": 4, "warmup_steps": 2, "rays_per_step": 64, "eikonal_points": 16,
+                          "residual": True, "weights": dataclasses.replace(cfg.weights, silhouette=1.0), **kw})
 
 
 @pytest.mark.parametrize("order", ["reversed", "rotated"])
@@ -801,6 +803,22 @@ def test_no_residual_never_evaluated(static_run):
     assert static_run.residual_calls == [0] * static_run.optimiser.cfg.steps
     assert not any("rdf_" in k for keys in static_run.adam_keys for k in keys)
     assert static_run.result.loss_history["eikonal"] == [0.0] * static_run.result.steps
+
+
+def test_silhouette_weight_zero_renders_nothing(scene, monkeypatch):
+    """With ``weights.silhouette = 0`` no ray is drawn or rendered, the silhouette term logs 0
+    and the projection term is the one the rendering run logs (the same boxes at step 0)."""
+    obs, gt = scene
+    cfg = quick(residual=False, steps=1)
+    rendered = BoxOptimiser(obs, gt, cfg).run()
+    assert rendered.sdf_evaluations > 0 and rendered.loss_history["silhouette"][0] > 0
+    calls = []
+    real = VSRDSilhouetteIntegrator.render_rays
+    monkeypatch.setattr(VSRDSilhouetteIntegrator, "render_rays", lambda self, *a: calls.append(1) or real(self, *a))
+    off = BoxOptimiser(obs, gt, cfg.replace(weights=dataclasses.replace(cfg.weights, silhouette=0.0))).run()
+    assert calls == [] and off.sdf_evaluations == 0
+    assert off.loss_history["silhouette"] == [0.0]
+    assert off.loss_history["projection"][0] == pytest.approx(rendered.loss_history["projection"][0], rel=1e-6)
 
 
 def test_shape_prior_enters_the_init_term_with_the_initial_boxes(scene):

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import json
 from pathlib import Path
 
@@ -29,7 +31,8 @@ from vsrd_mi.scene.initial import default_initial_boxes
 ROOT = Path(__file__).resolve().parents[1] / "scenes" / "kitti360-synth"
 K = np.array([[500.0, 0.0, 320.0], [0.0, 500.0, 120.0], [0.0, 0.0, 1.0]])
 #: Few steps, box-only warm-up shorter than the run so the residual field is on at the end.
-TINY = default_config().replace(steps=4, warmup_steps=2, init=False, residual=True)
+TINY = default_config().replace(steps=4, warmup_steps=2, init=False, residual=True,
+                                weights=dataclasses.replace(default_config().weights, silhouette=1.0))
 #: Small visuals for the tests.
 SMALL = V.VisualConfig(sheet_scale=0.25, mask_scale=0.1, mask_sources=1, mesh_cells=24)
 

@@ -78,7 +78,8 @@ def register(subparsers) -> None:
     p.add_argument("--config", choices=sorted(PRESETS), default="default")
     p.add_argument("--steps", type=int, help="override the number of optimisation steps")
     p.add_argument("--no-residual", action="store_true",
-                   help="no residual distance field (the default preset has none; --set residual=true adds it)")
+                   help="no residual distance field (the default preset has none; --set residual=true "
+                        "--set weights.silhouette=1 adds it)")
     p.add_argument("--no-velocity", action="store_true")
     p.add_argument("--no-init", action="store_true")
     p.add_argument("--seed", type=int, default=0)

@@ -33,6 +33,7 @@ from ..data.kitti360 import Sequence, frame_file, instance_dir, sequence_name
 from ..data.observations import opt_from_world
 from ..geometry.boxes import Box3D, wrap_angle
 from ..geometry.vehicle_sizes import mirror_span
+from ..optimise.config import default_config
 
 #: VW Golf Mk5 (2003-2008) length, width without mirrors, height (m), Volkswagen's technical data
 #: (4204 x 1759 x 1479 mm).
@@ -99,16 +100,18 @@ def score(box: Box3D, road: float) -> dict:
             "axis_error_deg": axis, "faces_camera": bool(box.heading[2] < 0), "passed": passed}
 
 
-def run(data: Path, work: Path) -> dict:
-    """Autolabel the sample's target and score it (see the module docstring)."""
+def run(data: Path, work: Path, overrides: list[str] = ()) -> dict:
+    """Autolabel the sample's target and score it (see the module docstring); ``overrides``:
+    ``KEY=VALUE`` settings of the default configuration, as ``vsrd-mi autolabel --set``."""
     root = scratch_root(data, work)
-    task = TargetTask(root=str(root), sequence=SEQUENCE, frame=TARGET, output_dir=str(work / "out"), config={})
+    config = default_config().with_overrides(list(overrides)).to_dict() if overrides else {}
+    task = TargetTask(root=str(root), sequence=SEQUENCE, frame=TARGET, output_dir=str(work / "out"), config=config)
     result = process_target(task)
     if result.status != "done":
         raise RuntimeError(f"target {TARGET}: {result.status}: {result.error}")
     boxes = json.loads((task.sequence_dir / f"boxes/{TARGET:010d}.json").read_text())
     box = Box3D.from_dict(boxes["boxes"][0])
-    return {"target": TARGET, "seconds": result.seconds, "reference": GOLF_MK5,
+    return {"target": TARGET, "overrides": list(overrides), "seconds": result.seconds, "reference": GOLF_MK5,
             "box": boxes["boxes"][0], **score(box, road_yaw(Sequence(root, SEQUENCE), TARGET))}
 
 
@@ -118,12 +121,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--data", type=Path, default=Path("../shared/data/kitti360-real-0000"),
                    help="the real sample's root (calibration/, data_poses/, data_2d_raw/)")
     p.add_argument("--json", type=Path, default=Path("benchmarks/real_sample.json"))
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                   help="override of the default configuration (repeatable), as autolabel --set")
     p.set_defaults(func=main)
 
 
 def main(args: argparse.Namespace) -> int:
     with tempfile.TemporaryDirectory() as tmp:
-        report = run(args.data, Path(tmp))
+        report = run(args.data, Path(tmp), args.overrides)
     args.json.parent.mkdir(parents=True, exist_ok=True)
     args.json.write_text(json.dumps(report, indent=1) + "\n")
     print(json.dumps({k: report[k] for k in ("size_lwh_m", "relative_error", "axis_error_deg",

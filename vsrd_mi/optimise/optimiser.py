@@ -270,6 +270,8 @@ class BoxOptimiser:
             if opt_vel is not None:
                 opt_vel.set_learning_rate(cfg.lr.velocity * decay)
             residual_on = cfg.residual and step >= cfg.warmup_steps
+            # the silhouettes are rendered only when their loss counts
+            render = w.silhouette > 0
             if residual_on and opt_rdf is None:
                 it.field.use_residual = True
                 opt_rdf = {"emb": self._adam({f"{INTEGRATOR}.rdf_embedding": self.params[f"{INTEGRATOR}.rdf_embedding"]},
@@ -289,14 +291,17 @@ class BoxOptimiser:
             if self._lanes is None or not np.array_equal(perm, self.perm):
                 self.perm = perm
                 self._lanes = self._projection_lanes()
-            o, d, t, targets = self.sampler.sample(self.perm)
-            labels = it.render_rays(o, d, t)[:-1]
-            sdf_evals += it.last_stats.get("sdf_evals", 0)
             l_proj = losses.projection_loss(dec, self._lanes, w.huber_beta, w.projection_huber, w.projection_diou,
                                             containment=w.projection_mode == "containment",
                                             excess=w.projection_excess, profile=cfg.car_profile)
-            l_sil = losses.silhouette_loss(labels, targets, w.bce_eps)
-            total = l_proj + w.silhouette * l_sil
+            total = l_proj
+            l_sil = mi.Float(0.0)
+            if render:
+                o, d, t, targets = self.sampler.sample(self.perm)
+                labels = it.render_rays(o, d, t)[:-1]
+                sdf_evals += it.last_stats.get("sdf_evals", 0)
+                l_sil = losses.silhouette_loss(labels, targets, w.bce_eps)
+                total = total + w.silhouette * l_sil
             l_eik = l_init = mi.Float(0.0)
             if residual_on and w.eikonal > 0:
                 l_eik = losses.eikonal_loss(it.field, dec, it.field.residual_weights(),
