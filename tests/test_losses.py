@@ -821,6 +821,33 @@ def test_silhouette_weight_zero_renders_nothing(scene, monkeypatch):
     assert off.loss_history["projection"][0] == pytest.approx(rendered.loss_history["projection"][0], rel=1e-6)
 
 
+def test_frozen_box_step_matches_the_traced_step(scene):
+    """Without rendering, the step recorded once by ``dr.freeze`` and replayed gives the traced
+    step's losses and boxes (up to float rounding), records at most twice (Adam's first step
+    and the rest) and is not used where the silhouettes are rendered."""
+    obs, gt = scene
+    start = [Box3D(b.centre + np.array([0.3, 0.0, -0.4]), b.size * 1.1, b.yaw + 0.1, b.velocity, b.dynamic,
+                   b.instance_id) for b in gt]
+    cfg = default_config().replace(steps=30, early_stop=dataclasses.replace(default_config().early_stop,
+                                                                            enabled=False))
+    runs = {}
+    for frozen in (True, False):
+        opt = BoxOptimiser(obs, start, cfg.replace(frozen_step=frozen), init_boxes=gt)
+        runs[frozen] = (opt.run(), opt.recordings)
+    (a, rec_a), (b, rec_b) = runs[True], runs[False]
+    assert 1 <= rec_a <= 2 and rec_b == 0
+    for key in ("total", "projection", "init"):
+        np.testing.assert_allclose(a.loss_history[key], b.loss_history[key], rtol=1e-4)
+    assert a.loss_history["total"][-1] < 0.9 * a.loss_history["total"][0]  # the boxes did move
+    for x, y in zip(a.boxes, b.boxes):
+        np.testing.assert_allclose(x.centre, y.centre, atol=1e-4)
+        np.testing.assert_allclose(x.size, y.size, atol=1e-4)
+        assert abs(x.yaw - y.yaw) < 1e-4
+    rendering = BoxOptimiser(obs, start, quick(residual=False, steps=2))
+    rendering.run()
+    assert rendering.recordings == 0
+
+
 def test_shape_prior_enters_the_init_term_with_the_initial_boxes(scene):
     """Start at the ground truth; the initialisation is 0.5 m longer and turned by 30 degrees:
     at step 0 the init term is the prior alone, ``2 * 0.5 + 2 * sin^2(30 deg) = 1.5`` per box."""

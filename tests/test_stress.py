@@ -530,7 +530,9 @@ def test_non_finite_gradient_in_last_step_emits_no_box(monkeypatch, target_obs):
     the result is refused rather than returned."""
     from vsrd_mi.optimise.optimiser import BoxOptimiser, OptimisationError
     from vsrd_mi.scene.initial import default_initial_boxes
-    cfg = quick_config()
+    # two steps: the frozen box step runs Python (and so the poisoned loss) only while it
+    # records, in its first two steps; later steps replay the recording
+    cfg = quick_config().replace(steps=2)
     calls = poison_projection_loss(monkeypatch, cfg.steps, "gradient")
     opt = BoxOptimiser(target_obs, default_initial_boxes(target_obs), cfg)
     with pytest.raises(OptimisationError, match="non-finite box parameters"):

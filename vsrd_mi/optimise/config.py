@@ -33,7 +33,7 @@ class LossWeights:
     projection_diou: float = 0.1
     #: Weight of the rendered-silhouette BCE (the paper: 1). 0 by default: at the paper's weight
     #: the term is ~1/200 of the pixel-scale projection loss and moved the boxes of the
-    #: development targets by < 6 cm (mean 3D IoU of parked / moving cars 0.6780 / 0.7757 with
+    #: development targets by 1 mm (median; mean 3D IoU of parked / moving cars 0.6780 / 0.7757 with
     #: it, 0.6774 / 0.7754 without, 12 targets before heading and consensus) while rendering
     #: took 79 % of the optimisation's time; at 30 it gained 0.005 / 0.002 for 4.8x the time
     #: (docs/autolabel.md, "The silhouette term"). With 0 no ray is rendered (the optimiser skips
@@ -336,6 +336,10 @@ class AutolabelConfig:
     #: kernel) or ``tensor`` (Dr.Jit AD through tensor-mode matmuls, the reference;
     #: docs/integrators.md compares them).
     residual_gradients: str = "fused"
+    #: Where nothing is rendered (``weights.silhouette = 0``), run each step as one recorded
+    #: ``dr.freeze`` function (:func:`vsrd_mi.optimise.optimiser.box_step`): traced once, then
+    #: its kernels replayed (docs/speed.md, "The frozen box step"). Off: traced every step.
+    frozen_step: bool = True
     velocity: bool = True
     #: Occlusion-aware projection loss (not in the paper): a side of a mask box that an occluder
     #: or the image edge may cut short (:func:`vsrd_mi.data.masks.open_sides`) only bounds the

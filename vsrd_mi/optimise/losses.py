@@ -69,6 +69,11 @@ class ProjectionLanes:
     (:func:`vsrd_mi.data.masks.open_sides`). All lanes share intrinsics ``K`` and image ``bounds``.
     """
 
+    #: The Dr.Jit arrays (``DRJIT_STRUCT``: a frozen function that takes this object reads them
+    #: as inputs; ``K`` and ``bounds`` enter its kernels as constants).
+    DRJIT_STRUCT = {"box": mi.UInt32, "dt": mi.Float, "rot": list, "trans": list, "target": list,
+                    "open": list, "closed": mi.Float}
+
     def __init__(self, box: np.ndarray, dt: np.ndarray, world_to_cam: np.ndarray,
                  target: np.ndarray, K: np.ndarray, bounds: np.ndarray,
                  open_sides: np.ndarray | None = None):
@@ -229,6 +234,8 @@ class InitAnchor:
     velocity term), the mask of boxes whose velocity counts ``velocity_mask`` (N,) and weights
     ``box_weights`` (N,) or None (all 1). :meth:`loss` is :func:`init_loss`."""
 
+    DRJIT_STRUCT = {"centre": list, "w": mi.Float, "velocity": object, "mask": object}
+
     def __init__(self, centre_init: np.ndarray, velocity_init: np.ndarray | None,
                  velocity_mask: np.ndarray | None, box_weights: np.ndarray | None = None):
         n = self.count = len(centre_init)
@@ -261,6 +268,8 @@ class ShapePrior:
     """The size / yaw prior's constants as Dr.Jit arrays, converted once per optimisation:
     initial sizes ``size_init`` (N, 3) (w, h, l), yaws ``yaw_init`` (N,), and weights ``w_size``,
     ``w_yaw`` (scalars or per box). :meth:`loss` is :func:`shape_prior_loss`."""
+
+    DRJIT_STRUCT = {"w_size": object, "size": list, "w_yaw": object, "cos": mi.Float, "sin": mi.Float}
 
     def __init__(self, size_init: np.ndarray, yaw_init: np.ndarray, w_size, w_yaw):
         n = self.count = len(size_init)
@@ -298,6 +307,8 @@ class WidthPrior:
     height enter detached: the prior moves the width only, never the extents the masks measure.
     """
 
+    DRJIT_STRUCT = {"w": mi.Float}
+
     def __init__(self, weights: np.ndarray):
         self.count = len(weights)
         self.w = to_float(np.asarray(weights, dtype=np.float64))
@@ -325,6 +336,8 @@ class VisibleSurface:
     box are kept (a fixed random subset drawn with ``seed``).
     """
 
+    DRJIT_STRUCT = {"box": object, "w": object, "points": object, "cameras": object}
+
     def __init__(self, points: list, cameras: list, weights: np.ndarray, scale: float,
                  reference_range: float, max_points: int, quantile: float, seed: int = 0):
         rng = np.random.default_rng(seed)
@@ -342,6 +355,7 @@ class VisibleSurface:
             pts.append(p)
             cams.append(c)
         self.lanes = int(sum(len(b) for b in box))
+        self.box = self.w = self.points = self.cameras = None
         if self.lanes:
             pts, cams = np.concatenate(pts), np.concatenate(cams)
             self.box = to_uint(np.concatenate(box))

@@ -16,6 +16,11 @@ integrator with one box per target instance), reads its differentiable parameter
 5. box-only warm-up: the residual field is neither optimised nor evaluated before
    ``warmup_steps``; no velocity parameters when no instance is dynamic;
 6. early stop when the loss and the boxes have converged (:class:`Convergence`).
+
+Where nothing is rendered (``weights.silhouette = 0``, the default) a step is the same small
+computation every time: :func:`box_step` runs it from explicit inputs under ``dr.freeze``
+(``AutolabelConfig.frozen_step``), which traces and compiles it once and then replays its
+kernels (docs/speed.md, "The frozen box step").
 """
 
 from __future__ import annotations
@@ -27,6 +32,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 from scipy.optimize import linear_sum_assignment
+from vsrd_plugins.sdf import InstanceField
 
 from ..data.observations import Observations
 from ..geometry import boxes2d
@@ -34,13 +40,60 @@ from ..geometry.boxes import Box3D
 from ..geometry.camera import image_bounds
 from ..scene.builder import integrator_dict, scene_dict
 from . import losses
-from .config import AutolabelConfig
+from .config import AutolabelConfig, CarProfile, LossWeights
 from .parameters import BOX_LATENTS, VELOCITY_LATENT, BoxLatents, BoxRanges
 
 INTEGRATOR = "vsrd"
 #: Eikonal points are drawn in each box scaled by this factor (the residual's surface lies inside
 #: the box; a margin beyond it keeps the field a distance there too).
 EIKONAL_SPREAD = 1.2
+
+
+def decode_latents(opts: list, latents: BoxLatents, fixed: dict):
+    """The boxes the Adam optimisers' latents hold: ``(decoded boxes, physical parameters)``.
+    ``opts[0]`` holds the box latents, ``opts[1]`` (when given) the velocities; ``fixed`` the
+    parameters not optimised (``dynamic``; ``velocity`` without a velocity optimiser)."""
+    lat = {k: opts[0][k] for k in BOX_LATENTS}
+    if len(opts) > 1:
+        lat[VELOCITY_LATENT] = opts[1][VELOCITY_LATENT]
+    phys = latents.decode(lat)
+    return InstanceField.decode_parameters({**fixed, **phys}, latents.count), phys
+
+
+def box_losses(dec, lanes: losses.ProjectionLanes, terms: list, w: LossWeights,
+               profile: CarProfile) -> tuple[mi.Float, mi.Float]:
+    """The projection loss of decoded boxes and the sum of the init terms (anchor, priors,
+    visible surface): every loss term that needs no rendering."""
+    l_proj = losses.projection_loss(dec, lanes, w.huber_beta, w.projection_huber, w.projection_diou,
+                                    containment=w.projection_mode == "containment",
+                                    excess=w.projection_excess, profile=profile)
+    l_init = mi.Float(0.0)
+    for term in terms:
+        l_init = l_init + term.loss(dec)
+    return l_proj, l_init
+
+
+def box_step(opts: list, latents: BoxLatents, fixed: dict, lanes: losses.ProjectionLanes,
+             target_lanes: losses.ProjectionLanes, terms: list, w: LossWeights, profile: CarProfile):
+    """One Adam step of the objective without rendering (:func:`box_losses`), from explicit
+    inputs only, so that it runs under ``dr.freeze`` (a frozen function refuses Dr.Jit arrays it
+    was not given, and replays its kernels without calling Python).
+
+    Returns, detached: the total, projection and init losses; the centres and sizes (3N each)
+    before the step, which the early stop compares; and the target frame's projected boxes
+    ``(x1, y1, x2, y2)`` after it, which the next step's matching reads.
+    """
+    dec, phys = decode_latents(opts, latents, fixed)
+    l_proj, l_init = box_losses(dec, lanes, terms, w, profile)
+    total = l_proj + l_init
+    dr.backward(total)
+    for o in opts:
+        o.step()
+    with dr.suspend_grad():
+        after, _ = decode_latents(opts, latents, fixed)
+        projected = losses.projected_boxes(after, target_lanes, profile)[:4]
+    return ([dr.detach(x) for x in (total, l_proj, l_init)], [dr.detach(phys["centre"]), dr.detach(phys["size"])],
+            [dr.detach(x) for x in projected])
 
 
 class OptimisationError(RuntimeError):
@@ -173,6 +226,12 @@ class BoxOptimiser:
         self.bounds = image_bounds(obs.image_size)
         self.perm = np.arange(self.n)
         self._lanes = None
+        #: every box in the target frame: the matching projects these
+        self.target_lanes = losses.ProjectionLanes(
+            np.arange(self.n), np.zeros(self.n), np.repeat(self.world_to_cam[None, 0], self.n, 0),
+            np.zeros((self.n, 4)), obs.K[0], self.bounds)
+        #: recordings of the frozen step in the last run (0: the step was not frozen)
+        self.recordings = 0
         # fresh eikonal points every step: a fixed set left the field free between its points
         self.eik_rng = np.random.default_rng(cfg.seed + 1)
         self.rdf_keys = [k for k in self.params.keys() if k.startswith(f"{INTEGRATOR}.rdf_")]
@@ -201,14 +260,13 @@ class BoxOptimiser:
 
     def _match(self, dec) -> np.ndarray:
         """Hungarian matching of boxes to target-frame instances on -DIoU."""
-        obs = self.obs
-        target_lanes = losses.ProjectionLanes(
-            np.arange(self.n), np.zeros(self.n), np.repeat(self.world_to_cam[None, 0], self.n, 0),
-            np.zeros((self.n, 4)), obs.K[0], self.bounds)
         with dr.suspend_grad():
-            x1, y1, x2, y2, _ = losses.projected_boxes(dec, target_lanes, self.cfg.car_profile)
-            pred = np.stack([np.array(v) for v in (x1, y1, x2, y2)], 1)
-        masks = obs.boxes2d[0]
+            projected = losses.projected_boxes(dec, self.target_lanes, self.cfg.car_profile)[:4]
+        return self._match_projected(np.stack([np.array(v) for v in projected], 1))
+
+    def _match_projected(self, pred: np.ndarray) -> np.ndarray:
+        """:meth:`_match` of the boxes' projections ``pred`` (N, 4) into the target frame."""
+        masks = self.obs.boxes2d[0]
         cost = -boxes2d.diou_matrix(pred, np.nan_to_num(masks, nan=-1e4))
         cost[:, ~np.all(np.isfinite(masks), axis=1)] = 1e3
         rows, cols = linear_sum_assignment(cost)
@@ -235,7 +293,7 @@ class BoxOptimiser:
         t0 = _time.time()
         opt_box = self._adam({k: self.start[k] for k in BOX_LATENTS}, cfg.lr.box)
         opt_vel = self._adam({VELOCITY_LATENT: self.start[VELOCITY_LATENT]}, cfg.lr.velocity) if self.dynamic.any() else None
-        opt_rdf = None
+        self._opt_rdf = None  # the residual field's optimisers, once it joins
         w = cfg.weights
         anchor = prior = None
         init_weights = np.where(self.dynamic, w.init_dynamic, w.init)
@@ -261,60 +319,38 @@ class BoxOptimiser:
         sdf_evals = 0
         stopped = False
         step = 0
+        # the silhouettes are rendered only when their loss counts (the residual field needs them)
+        render = w.silhouette > 0
+        frozen = None
+        if cfg.frozen_step and not render:
+            # re-recorded when the lane count changes: widths enter the kernels as constants
+            frozen = dr.freeze(box_step, state_fn=lambda opts, latents, fixed, lanes, *rest: (lanes.count,))
+            fixed = {k: mi.Float(dr.detach(self.params[f"{INTEGRATOR}.{k}"])) for k in ("dynamic", "velocity")}
+        projected_next = None
         for step in range(cfg.steps):
-            s_inv = cosine(cfg.schedule.inv_sharpness_start, cfg.schedule.inv_sharpness_end, step, cfg.steps)
-            tau = cosine(cfg.schedule.tau_start, cfg.schedule.tau_end, step, cfg.steps)
-            it.set_schedule(1.0 / s_inv, tau)
             decay = cfg.lr.decay ** (step / max(cfg.steps, 1))
-            opt_box.set_learning_rate(cfg.lr.box * decay)
-            if opt_vel is not None:
-                opt_vel.set_learning_rate(cfg.lr.velocity * decay)
-            residual_on = cfg.residual and step >= cfg.warmup_steps
-            # the silhouettes are rendered only when their loss counts
-            render = w.silhouette > 0
-            if residual_on and opt_rdf is None:
-                it.field.use_residual = True
-                opt_rdf = {"emb": self._adam({f"{INTEGRATOR}.rdf_embedding": self.params[f"{INTEGRATOR}.rdf_embedding"]},
-                                             cfg.lr.embedding),
-                           "hyper": self._adam({k: self.params[k] for k in self.rdf_keys if "hyper" in k},
-                                               cfg.lr.hypernetwork)}
-            if opt_rdf is not None:
-                opt_rdf["emb"].set_learning_rate(cfg.lr.embedding * decay)
-                opt_rdf["hyper"].set_learning_rate(cfg.lr.hypernetwork * decay)
-            opts = [o for o in (opt_box, opt_vel) if o is not None] + (list(opt_rdf.values()) if opt_rdf else [])
-            self._write_boxes(opt_box, opt_vel)
-            for o in opt_rdf.values() if opt_rdf else ():
-                self.params.update(o)
-
-            dec = it.field.decode()
-            perm = self._match(dec)
-            if self._lanes is None or not np.array_equal(perm, self.perm):
-                self.perm = perm
-                self._lanes = self._projection_lanes()
-            l_proj = losses.projection_loss(dec, self._lanes, w.huber_beta, w.projection_huber, w.projection_diou,
-                                            containment=w.projection_mode == "containment",
-                                            excess=w.projection_excess, profile=cfg.car_profile)
-            total = l_proj
-            l_sil = mi.Float(0.0)
-            if render:
-                o, d, t, targets = self.sampler.sample(self.perm)
-                labels = it.render_rays(o, d, t)[:-1]
-                sdf_evals += it.last_stats.get("sdf_evals", 0)
-                l_sil = losses.silhouette_loss(labels, targets, w.bce_eps)
-                total = total + w.silhouette * l_sil
-            l_eik = l_init = mi.Float(0.0)
-            if residual_on and w.eikonal > 0:
-                l_eik = losses.eikonal_loss(it.field, dec, it.field.residual_weights(),
-                                            self.eikonal_points(), cfg.eikonal_step)
-                total = total + w.eikonal * l_eik
-            for term in init_terms:
-                l_term = term.loss(dec)
-                l_init = l_init + l_term
-                total = total + l_term
-            dr.backward(total)
-            for o_ in opts:
-                o_.step()
-            vals = [float(x[0]) for x in (total, l_proj, l_sil, l_eik, l_init)]
+            if frozen is not None:
+                # one fresh opaque rate per parameter: a shared array is scaled in place by Adam
+                # once per parameter, and a Python float would enter the recording as a constant
+                opt_box.set_learning_rate({k: dr.opaque(mi.Float, cfg.lr.box * decay) for k in BOX_LATENTS})
+                if opt_vel is not None:
+                    opt_vel.set_learning_rate({VELOCITY_LATENT: dr.opaque(mi.Float, cfg.lr.velocity * decay)})
+                if projected_next is None:  # the first step's boxes are matched as unfrozen
+                    self._write_boxes(opt_box, opt_vel)
+                    perm = self._match(it.field.decode())
+                else:
+                    perm = self._match_projected(projected_next)
+                self._update_lanes(perm)
+                opts = [o for o in (opt_box, opt_vel) if o is not None]
+                (total, l_proj, l_init), (centre, size), projected = frozen(
+                    opts, self.latents, fixed, self._lanes, self.target_lanes, init_terms, w, cfg.car_profile)
+                vals = [float(total[0]), float(l_proj[0]), 0.0, 0.0, float(l_init[0])]
+                projected_next = np.stack([np.array(v) for v in projected], 1)
+                box_vec = np.concatenate([np.array(centre), np.array(size)])
+            else:
+                vals, sdf = self._step(step, decay, opt_box, opt_vel, init_terms, render)
+                sdf_evals += sdf
+                box_vec = None
             if not np.all(np.isfinite(vals)):
                 raise OptimisationError(f"target {self.obs.target}: non-finite loss at step {step}: {vals}")
             for k, v in zip(history, vals):
@@ -322,17 +358,71 @@ class BoxOptimiser:
             if progress is not None:
                 progress(step, vals[0])
             if cfg.early_stop.enabled and step >= cfg.early_stop.min_fraction * cfg.steps:
-                if conv.update(vals[0], self._box_vector()):
+                if conv.update(vals[0], self._box_vector() if box_vec is None else box_vec):
                     stopped = True
                     break
+        self.recordings = frozen.n_recordings if frozen is not None else 0
         self._write_boxes(opt_box, opt_vel)
-        for o in opt_rdf.values() if opt_rdf else ():
+        for o in self._opt_rdf.values() if self._opt_rdf else ():
             self.params.update(o)
         boxes = self.boxes()
         return OptimisationResult(boxes=boxes, instance_ids=self.obs.instance_ids[self.perm],
                                   steps=step + 1, seconds=_time.time() - t0, loss_history=history,
                                   stopped_early=stopped, sdf_evaluations=sdf_evals,
                                   projected_lanes=self._lanes.count if self._lanes else 0)
+
+    def _update_lanes(self, perm: np.ndarray) -> None:
+        """The projection lanes of the matching ``perm`` (rebuilt only when it changed)."""
+        if self._lanes is None or not np.array_equal(perm, self.perm):
+            self.perm = perm
+            self._lanes = self._projection_lanes()
+
+    def _step(self, step: int, decay: float, opt_box: mi.ad.Adam, opt_vel: mi.ad.Adam | None,
+              init_terms: list, render: bool) -> tuple[list[float], int]:
+        """One traced step: schedule, matching, the silhouettes where ``render``, the residual
+        field after its warm-up, every loss, backward and Adam. Returns the logged losses
+        (total, projection, silhouette, eikonal, init) and the SDF evaluations of the render."""
+        cfg, it, w = self.cfg, self.integrator, self.cfg.weights
+        s_inv = cosine(cfg.schedule.inv_sharpness_start, cfg.schedule.inv_sharpness_end, step, cfg.steps)
+        tau = cosine(cfg.schedule.tau_start, cfg.schedule.tau_end, step, cfg.steps)
+        it.set_schedule(1.0 / s_inv, tau)
+        opt_box.set_learning_rate(cfg.lr.box * decay)
+        if opt_vel is not None:
+            opt_vel.set_learning_rate(cfg.lr.velocity * decay)
+        residual_on = cfg.residual and step >= cfg.warmup_steps
+        if residual_on and self._opt_rdf is None:
+            it.field.use_residual = True
+            self._opt_rdf = {"emb": self._adam({f"{INTEGRATOR}.rdf_embedding": self.params[f"{INTEGRATOR}.rdf_embedding"]},
+                                               cfg.lr.embedding),
+                             "hyper": self._adam({k: self.params[k] for k in self.rdf_keys if "hyper" in k},
+                                                 cfg.lr.hypernetwork)}
+        rdf = list(self._opt_rdf.values()) if self._opt_rdf else []
+        if rdf:
+            rdf[0].set_learning_rate(cfg.lr.embedding * decay)
+            rdf[1].set_learning_rate(cfg.lr.hypernetwork * decay)
+        self._write_boxes(opt_box, opt_vel)
+        for o in rdf:
+            self.params.update(o)
+        dec = it.field.decode()
+        self._update_lanes(self._match(dec))
+        l_proj, l_init = box_losses(dec, self._lanes, init_terms, w, cfg.car_profile)
+        total = l_proj + l_init
+        l_sil = l_eik = mi.Float(0.0)
+        sdf_evals = 0
+        if render:
+            o, d, t, targets = self.sampler.sample(self.perm)
+            labels = it.render_rays(o, d, t)[:-1]
+            sdf_evals = it.last_stats.get("sdf_evals", 0)
+            l_sil = losses.silhouette_loss(labels, targets, w.bce_eps)
+            total = total + w.silhouette * l_sil
+        if residual_on and w.eikonal > 0:
+            l_eik = losses.eikonal_loss(it.field, dec, it.field.residual_weights(), self.eikonal_points(),
+                                        cfg.eikonal_step)
+            total = total + w.eikonal * l_eik
+        dr.backward(total)
+        for o in [o for o in (opt_box, opt_vel) if o is not None] + rdf:
+            o.step()
+        return [float(x[0]) for x in (total, l_proj, l_sil, l_eik, l_init)], sdf_evals
 
     def _visible_surface(self) -> losses.VisibleSurface | None:
         """The visible-surface term of the parked boxes that have points (None when off)."""

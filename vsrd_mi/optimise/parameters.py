@@ -78,6 +78,9 @@ class BoxRanges:
 class BoxLatents:
     """Decodes the latents of ``count`` boxes within ``ranges`` (the range arrays built once)."""
 
+    #: The range arrays, inputs of a frozen function that takes this object.
+    DRJIT_STRUCT = {"span": list, "low": list}
+
     def __init__(self, ranges: BoxRanges, count: int):
         self.ranges, self.count = ranges, count
         self.span = [to_float(np.tile(np.array(hi) - np.array(lo), count)) for lo, hi in

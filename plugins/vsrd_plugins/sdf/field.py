@@ -88,12 +88,19 @@ class InstanceField:
         # opaque: with one box, ``yaw`` and ``dynamic`` hold one value each, and Dr.Jit bakes the
         # value of a width-1 array into the kernels that read it (new kernels for every new yaw)
         dr.make_opaque(*self.params.values())
-        idx = [dr.arange(mi.UInt32, self.n) * 3 + j for j in range(3)]
-        half = [0.5 * dr.gather(mi.Float, self.params["size"], i) for i in idx]
-        centre = [dr.gather(mi.Float, self.params["centre"], i) for i in idx]
-        vel = [dr.gather(mi.Float, self.params["velocity"], i) for i in idx]
-        sin, cos = dr.sincos(self.params["yaw"])
-        return DecodedBoxes(half, centre, cos, sin, vel, mi.Float(self.params["dynamic"]))
+        return self.decode_parameters(self.params, self.n)
+
+    @staticmethod
+    def decode_parameters(params, n: int) -> DecodedBoxes:
+        """:meth:`decode` of box parameters given as a mapping with the keys of
+        :data:`BOX_PARAMETERS` (flat, box-major) for ``n`` boxes: what a caller that holds the
+        parameters itself (e.g. inside a ``dr.freeze`` function) decodes them with."""
+        idx = [dr.arange(mi.UInt32, n) * 3 + j for j in range(3)]
+        half = [0.5 * dr.gather(mi.Float, params["size"], i) for i in idx]
+        centre = [dr.gather(mi.Float, params["centre"], i) for i in idx]
+        vel = [dr.gather(mi.Float, params["velocity"], i) for i in idx]
+        sin, cos = dr.sincos(params["yaw"])
+        return DecodedBoxes(half, centre, cos, sin, vel, mi.Float(params["dynamic"]))
 
     def boxes(self) -> dict[str, np.ndarray]:
         """The box parameters as NumPy arrays: ``centre`` (N, 3), ``size`` (N, 3), ``yaw`` (N,),
