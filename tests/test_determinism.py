@@ -5,22 +5,17 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-import numpy as np
-
 from vsrd_mi.autolabel.job import process_target
 from vsrd_mi.batch.tasks import TargetTask
 from vsrd_mi.optimise.config import default_config
 
 ROOT = Path(__file__).resolve().parents[1] / "scenes" / "kitti360-synth"
 SEQUENCE = "2013_05_28_drive_0000_sync"
-#: Enough steps for the boxes to move (and, with rendering, the adaptive sampler's layouts to change).
-STEPS = 24
-#: How far two runs' velocities may differ (m per frame): a few float32 units in the last place.
-VELOCITY_RTOL, VELOCITY_ATOL = 1e-5, 1e-8
 
 
 def test_two_runs_of_a_target_write_identical_labels(tmp_path):
-    cfg = default_config().replace(steps=STEPS, warmup_steps=STEPS // 3).to_dict()
+    # the whole default run (440 steps on this target): rounding differences would grow over it
+    cfg = default_config().to_dict()
     outs = []
     for run in ("a", "b"):
         task = TargetTask(root=str(ROOT), sequence=SEQUENCE, frame=21, output_dir=str(tmp_path / run),
@@ -32,9 +27,4 @@ def test_two_runs_of_a_target_write_identical_labels(tmp_path):
     for name in labels:
         assert (outs[0] / "labels" / name).read_bytes() == (outs[1] / "labels" / name).read_bytes(), name
     boxes = [json.loads((out / "boxes" / "0000000021.json").read_text()) for out in outs]
-    assert boxes[0]["loss"] == boxes[1]["loss"]
-    for a, b in zip(boxes[0]["boxes"], boxes[1]["boxes"]):
-        # the frozen step's velocities may differ in their last float32 bits (docs/speed.md,
-        # "Same seed, same labels"); everything else is bit for bit the same
-        np.testing.assert_allclose(a.pop("velocity"), b.pop("velocity"), rtol=VELOCITY_RTOL, atol=VELOCITY_ATOL)
-        assert a == b
+    assert boxes[0]["boxes"] == boxes[1]["boxes"] and boxes[0]["loss"] == boxes[1]["loss"]

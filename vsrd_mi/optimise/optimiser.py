@@ -44,6 +44,11 @@ from .config import AutolabelConfig, CarProfile, LossWeights
 from .parameters import BOX_LATENTS, VELOCITY_LATENT, BoxLatents, BoxRanges
 
 INTEGRATOR = "vsrd"
+#: Dr.Jit threads while the frozen box step replays. Its kernels are small (a few hundred lanes):
+#: on one thread the 440 steps of a target ran 1.3-1.5x faster than on two and bit for bit the
+#: same every time, where two threads added the backward pass's reductions in varying orders
+#: (docs/speed.md, "Same seed, same labels").
+FROZEN_STEP_THREADS = 1
 #: Eikonal points are drawn in each box scaled by this factor (the residual's surface lies inside
 #: the box; a margin beyond it keeps the field a distance there too).
 EIKONAL_SPREAD = 1.2
@@ -289,31 +294,13 @@ class BoxOptimiser:
         self.params.update()
 
     def run(self, progress=None) -> OptimisationResult:
-        cfg, it = self.cfg, self.integrator
+        cfg = self.cfg
         t0 = _time.time()
         opt_box = self._adam({k: self.start[k] for k in BOX_LATENTS}, cfg.lr.box)
         opt_vel = self._adam({VELOCITY_LATENT: self.start[VELOCITY_LATENT]}, cfg.lr.velocity) if self.dynamic.any() else None
         self._opt_rdf = None  # the residual field's optimisers, once it joins
         w = cfg.weights
-        anchor = prior = None
-        init_weights = np.where(self.dynamic, w.init_dynamic, w.init)
-        if self.init_boxes is not None:
-            if np.any(init_weights > 0):
-                anchor = losses.InitAnchor(np.stack([b.centre for b in self.init_boxes]),
-                                           np.stack([b.velocity for b in self.init_boxes])
-                                           if opt_vel is not None else None,
-                                           self.dynamic, init_weights)
-            prior = losses.ShapePrior(np.stack([b.size for b in self.init_boxes]),
-                                      np.array([b.yaw for b in self.init_boxes]),
-                                      np.where(self.dynamic, w.init_size_dynamic, w.init_size),
-                                      np.where(self.dynamic, w.init_yaw_dynamic, w.init_yaw))
-            if not prior.active:
-                prior = None
-        width_prior = losses.WidthPrior(np.full(self.n, w.width_prior)) if w.width_prior > 0 else None
-        surface = self._visible_surface()
-        # the terms logged together as "init": the anchor, the priors on size, yaw and width and
-        # the visible surface
-        init_terms = [t for t in (anchor, prior, width_prior, surface) if t is not None]
+        init_terms = self._init_terms(opt_vel is not None)
         history = {k: [] for k in ("total", "projection", "silhouette", "eikonal", "init")}
         conv = Convergence(cfg.early_stop.window, cfg.early_stop.rel_loss, cfg.early_stop.box_tol)
         sdf_evals = 0
@@ -327,40 +314,31 @@ class BoxOptimiser:
             frozen = dr.freeze(box_step, state_fn=lambda opts, latents, fixed, lanes, *rest: (lanes.count,))
             fixed = {k: mi.Float(dr.detach(self.params[f"{INTEGRATOR}.{k}"])) for k in ("dynamic", "velocity")}
         projected_next = None
-        for step in range(cfg.steps):
-            decay = cfg.lr.decay ** (step / max(cfg.steps, 1))
-            if frozen is not None:
-                # one fresh opaque rate per parameter: a shared array is scaled in place by Adam
-                # once per parameter, and a Python float would enter the recording as a constant
-                opt_box.set_learning_rate({k: dr.opaque(mi.Float, cfg.lr.box * decay) for k in BOX_LATENTS})
-                if opt_vel is not None:
-                    opt_vel.set_learning_rate({VELOCITY_LATENT: dr.opaque(mi.Float, cfg.lr.velocity * decay)})
-                if projected_next is None:  # the first step's boxes are matched as unfrozen
-                    self._write_boxes(opt_box, opt_vel)
-                    perm = self._match(it.field.decode())
+        threads = dr.thread_count()
+        if frozen is not None:
+            dr.set_thread_count(FROZEN_STEP_THREADS)
+        try:
+            for step in range(cfg.steps):
+                decay = cfg.lr.decay ** (step / max(cfg.steps, 1))
+                if frozen is not None:
+                    vals, box_vec, projected_next = self._frozen_step(frozen, decay, opt_box, opt_vel, fixed,
+                                                                      init_terms, projected_next)
                 else:
-                    perm = self._match_projected(projected_next)
-                self._update_lanes(perm)
-                opts = [o for o in (opt_box, opt_vel) if o is not None]
-                (total, l_proj, l_init), (centre, size), projected = frozen(
-                    opts, self.latents, fixed, self._lanes, self.target_lanes, init_terms, w, cfg.car_profile)
-                vals = [float(total[0]), float(l_proj[0]), 0.0, 0.0, float(l_init[0])]
-                projected_next = np.stack([np.array(v) for v in projected], 1)
-                box_vec = np.concatenate([np.array(centre), np.array(size)])
-            else:
-                vals, sdf = self._step(step, decay, opt_box, opt_vel, init_terms, render)
-                sdf_evals += sdf
-                box_vec = None
-            if not np.all(np.isfinite(vals)):
-                raise OptimisationError(f"target {self.obs.target}: non-finite loss at step {step}: {vals}")
-            for k, v in zip(history, vals):
-                history[k].append(v)
-            if progress is not None:
-                progress(step, vals[0])
-            if cfg.early_stop.enabled and step >= cfg.early_stop.min_fraction * cfg.steps:
-                if conv.update(vals[0], self._box_vector() if box_vec is None else box_vec):
-                    stopped = True
-                    break
+                    vals, sdf = self._step(step, decay, opt_box, opt_vel, init_terms, render)
+                    sdf_evals += sdf
+                    box_vec = None
+                if not np.all(np.isfinite(vals)):
+                    raise OptimisationError(f"target {self.obs.target}: non-finite loss at step {step}: {vals}")
+                for k, v in zip(history, vals):
+                    history[k].append(v)
+                if progress is not None:
+                    progress(step, vals[0])
+                if cfg.early_stop.enabled and step >= cfg.early_stop.min_fraction * cfg.steps:
+                    if conv.update(vals[0], self._box_vector() if box_vec is None else box_vec):
+                        stopped = True
+                        break
+        finally:
+            dr.set_thread_count(threads)
         self.recordings = frozen.n_recordings if frozen is not None else 0
         self._write_boxes(opt_box, opt_vel)
         for o in self._opt_rdf.values() if self._opt_rdf else ():
@@ -371,11 +349,59 @@ class BoxOptimiser:
                                   stopped_early=stopped, sdf_evaluations=sdf_evals,
                                   projected_lanes=self._lanes.count if self._lanes else 0)
 
+    def _init_terms(self, velocity: bool) -> list:
+        """The terms logged together as "init": the anchor (with the velocities where
+        ``velocity``), the priors on size, yaw and width and the visible surface (those whose
+        weights are set)."""
+        w = self.cfg.weights
+        anchor = prior = None
+        init_weights = np.where(self.dynamic, w.init_dynamic, w.init)
+        if self.init_boxes is not None:
+            if np.any(init_weights > 0):
+                anchor = losses.InitAnchor(np.stack([b.centre for b in self.init_boxes]),
+                                           np.stack([b.velocity for b in self.init_boxes])
+                                           if velocity else None,
+                                           self.dynamic, init_weights)
+            prior = losses.ShapePrior(np.stack([b.size for b in self.init_boxes]),
+                                      np.array([b.yaw for b in self.init_boxes]),
+                                      np.where(self.dynamic, w.init_size_dynamic, w.init_size),
+                                      np.where(self.dynamic, w.init_yaw_dynamic, w.init_yaw))
+            if not prior.active:
+                prior = None
+        width_prior = losses.WidthPrior(np.full(self.n, w.width_prior)) if w.width_prior > 0 else None
+        surface = self._visible_surface()
+        return [t for t in (anchor, prior, width_prior, surface) if t is not None]
+
     def _update_lanes(self, perm: np.ndarray) -> None:
         """The projection lanes of the matching ``perm`` (rebuilt only when it changed)."""
         if self._lanes is None or not np.array_equal(perm, self.perm):
             self.perm = perm
             self._lanes = self._projection_lanes()
+
+    def _frozen_step(self, frozen, decay: float, opt_box: mi.ad.Adam, opt_vel: mi.ad.Adam | None, fixed: dict,
+                     init_terms: list, projected: np.ndarray | None) -> tuple[list[float], np.ndarray, np.ndarray]:
+        """One step through the frozen :func:`box_step`: learning rates, the matching of the boxes
+        the previous step left (``projected``: their target-frame projection; None at the first
+        step), the step. Returns the logged losses, the box vector the early stop compares and
+        this step's projection for the next."""
+        cfg = self.cfg
+        # one fresh opaque rate per parameter: a shared array is scaled in place by Adam once per
+        # parameter, and a Python float would enter the recording as a constant
+        opt_box.set_learning_rate({k: dr.opaque(mi.Float, cfg.lr.box * decay) for k in BOX_LATENTS})
+        if opt_vel is not None:
+            opt_vel.set_learning_rate({VELOCITY_LATENT: dr.opaque(mi.Float, cfg.lr.velocity * decay)})
+        if projected is None:  # the first step's boxes are matched as unfrozen
+            self._write_boxes(opt_box, opt_vel)
+            perm = self._match(self.integrator.field.decode())
+        else:
+            perm = self._match_projected(projected)
+        self._update_lanes(perm)
+        opts = [o for o in (opt_box, opt_vel) if o is not None]
+        (total, l_proj, l_init), (centre, size), after = frozen(
+            opts, self.latents, fixed, self._lanes, self.target_lanes, init_terms, cfg.weights, cfg.car_profile)
+        vals = [float(total[0]), float(l_proj[0]), 0.0, 0.0, float(l_init[0])]
+        return (vals, np.concatenate([np.array(centre), np.array(size)]),
+                np.stack([np.array(v) for v in after], 1))
 
     def _step(self, step: int, decay: float, opt_box: mi.ad.Adam, opt_vel: mi.ad.Adam | None,
               init_terms: list, render: bool) -> tuple[list[float], int]:
