@@ -7,8 +7,9 @@ integrator with one box per target instance), reads its differentiable parameter
 1. every step: sharpness ``s`` and temperature ``tau`` from the cosine schedule (opaque values,
    no recompilation), learning rates decayed exponentially;
 2. Hungarian matching of boxes to target-frame mask boxes on ``-DIoU`` (docs/method.md §4);
-3. rays drawn per frame from the soft masks (:class:`RaySampler`), soft labels rendered by the
-   integrator's ray-batch entry point, BCE against the masks;
+3. where the silhouette term is on (``weights.silhouette > 0``; off by default): rays drawn per
+   frame from the soft masks (:class:`RaySampler`), soft labels rendered by the integrator's
+   ray-batch entry point, BCE against the masks;
 4. projection loss on every (frame, box) pair where the matched instance is visible; eikonal loss
    while the residual field is on; init regulariser when an initialisation exists (centre and
    velocity as in the paper, plus the size / yaw prior where its weights are set -- the
