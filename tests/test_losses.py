@@ -25,6 +25,7 @@ from vsrd_plugins.silhouette import VSRDSilhouetteIntegrator
 from vsrd_mi.data.kitti_labels import label_from_box, write_labels
 from vsrd_mi.geometry import boxes2d
 from vsrd_mi.geometry.boxes import Box3D
+from vsrd_mi.geometry.surface import range_quantile
 from vsrd_mi.geometry.vehicle_sizes import tight_width
 from vsrd_mi.optimise import losses
 from vsrd_mi.optimise.config import CarProfile, default_config
@@ -540,6 +541,21 @@ def test_visible_surface_is_a_quantile_soft_l1_of_the_range_scaled_residuals():
         got = values(term.loss(field_of(moved, sizes, yaws).decode()))[0]
         assert got == pytest.approx(by_hand(shift), rel=1e-3), shift
     assert by_hand(0.5) > 5 * by_hand(-0.5)
+    # by range, the same box 25 m further: each point weighs its own range's quantile
+    far = centres.copy()
+    far[0, 2] += 25.0
+    pts, cams = surface_cloud(far[0], sizes[0], yaws[0], np.zeros(3), 40, rng, offset=0.05)
+    rng_k = np.linalg.norm(pts[:, [0, 2]], axis=1)
+    q = range_quantile(rng_k, 0.1, 10.0)
+    assert np.all(q > 0.3)
+    term = losses.VisibleSurface([pts, None], [cams, None], np.array([2.0, 0.0]), scale=scale,
+                                 reference_range=10.0, max_points=1000, quantile=0.1, by_range=True)
+    centres = far
+    for shift in (0.0, 0.5, -0.5):
+        moved = centres.copy()
+        moved[0, 2] += shift
+        got = values(term.loss(field_of(moved, sizes, yaws).decode()))[0]
+        assert got == pytest.approx(by_hand(shift), rel=1e-3), shift
 
 
 def test_visible_surface_gradients_match_finite_differences():
@@ -879,7 +895,7 @@ def test_visible_surface_enters_the_init_term_for_parked_boxes_only(scene):
     expected = losses.VisibleSurface([None if m else c[0] for c, m in zip(clouds, moving)],
                                      [None if m else c[1] for c, m in zip(clouds, moving)],
                                      np.full(len(gt), 5.0), sc.scale, sc.reference_range, sc.max_points,
-                                     sc.quantile, seed=base.seed).loss(field_of(
+                                     sc.quantile, seed=base.seed, by_range=sc.quantile_by_range).loss(field_of(
                                          np.stack([b.centre for b in gt]), np.stack([b.size for b in gt]),
                                          np.array([b.yaw for b in gt])).decode())
     expected = values(expected)[0]

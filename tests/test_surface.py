@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import vsrd_mi  # noqa: F401  (selects the Mitsuba variant)
 
-from vsrd_mi.geometry.surface import footprint_ray_residuals
+from vsrd_mi.geometry.surface import footprint_ray_residuals, range_quantile
 from vsrd_mi.geometry.xp import drjit_namespace
 
 HALF = (0.9, 2.2)
@@ -69,3 +69,25 @@ def test_drjit_namespace_gives_the_numpy_values():
     want = footprint_ray_residuals(pts[:, 0], pts[:, 1], cams[:, 0], cams[:, 1], *HALF, 10.0)
     got = np.array(footprint_ray_residuals(*f, *HALF, 10.0, xp=drjit_namespace()))
     np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-5)
+
+
+def test_range_quantile_is_the_faces_quantile_of_offset_plus_noise():
+    """The quantile holds at the reference range, rises with range towards the median and falls
+    towards 0 nearer; at every range it is the share of depths in front of the face when the body
+    lies an exponential offset behind it and stereo noise grows with the square of the range
+    (Monte Carlo with the noise scale ``range_quantile`` implies at the reference range)."""
+    ranges = np.array([2.0, 5.0, 10.0, 20.0, 40.0, 80.0])
+    q = range_quantile(ranges, 0.1, 10.0)
+    assert q[2] == pytest.approx(0.1, abs=1e-9)
+    assert np.all(np.diff(q) > 0) and q[0] < 0.01 and 0.45 < q[-1] < 0.5
+    np.testing.assert_array_equal(range_quantile(ranges, 0.5, 10.0), 0.5)
+    # the noise scale at the reference range (in units of the mean offset) that gives 0.1 there
+    rng = np.random.default_rng(3)
+    offsets = rng.exponential(1.0, 400_000)
+    normal = rng.standard_normal(400_000)
+    scales = np.linspace(0.05, 1.0, 400)
+    share = [np.mean(offsets + a * normal < 0) for a in scales]
+    a_ref = scales[np.argmin(np.abs(np.array(share) - 0.1))]
+    for r, want in zip(ranges, q):
+        a = a_ref * (r / 10.0) ** 2
+        assert np.mean(offsets + a * normal < 0) == pytest.approx(want, abs=0.01), r

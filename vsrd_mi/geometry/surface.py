@@ -12,7 +12,12 @@ visible surface with it (:class:`vsrd_mi.optimise.losses.VisibleSurface`); docs/
 
 from __future__ import annotations
 
+import math
 from types import SimpleNamespace
+
+import numpy as np
+from scipy.optimize import brentq
+from scipy.special import erfcx
 
 from .xp import NP
 
@@ -79,3 +84,29 @@ def quantile_soft_l1(r, scale: float, quantile: float, xp: SimpleNamespace = NP)
     it: below 0.5 it leaves fewer points in front of the faces than behind them, ``quantile`` of
     them or somewhat more. 0.5 is half the symmetric soft L1."""
     return xp.where(r < 0.0, 1.0 - quantile, quantile) * soft_l1(r, scale, xp)
+
+
+def _face_quantile(a):
+    """``P(offset + noise < 0)`` for an exponential offset of mean 1 and Gaussian noise of standard
+    deviation ``a``: ``(1 - erfcx(a / sqrt 2)) / 2`` (0 at ``a = 0``, towards 0.5 as ``a`` grows)."""
+    return 0.5 * (1.0 - erfcx(np.asarray(a, dtype=np.float64) / math.sqrt(2.0)))
+
+
+def range_quantile(ranges, quantile: float, reference_range: float) -> np.ndarray:
+    """Per point, the quantile of the depths at which the face its ray enters lies, for points at
+    ``ranges`` (m), given that it is ``quantile`` at ``reference_range``.
+
+    A point's depth along its ray is the face's, plus how far the body lies behind the tight box
+    there (exponential, mean ``mu``: mirrors, bumpers and arches stand out, panels curve in), plus
+    stereo noise ``N(0, sigma^2)`` with ``sigma`` growing with the square of the range. The face
+    then lies at the quantile ``P(offset + noise < 0) = (1 - erfcx(a / sqrt 2)) / 2`` of the
+    depths, ``a = sigma / mu``: near 0 where the noise is small against the offsets, towards 0.5
+    (the median) where it dwarfs them. ``quantile`` at ``reference_range`` fixes ``a`` there, and
+    ``a`` grows as ``(range / reference_range)^2``. A ``quantile`` of 0.5 or more is returned
+    unchanged at every range.
+    """
+    ranges = np.asarray(ranges, dtype=np.float64)
+    if quantile >= 0.5:
+        return np.full(ranges.shape, float(quantile))
+    a_ref = brentq(lambda a: float(_face_quantile(a)) - quantile, 0.0, 1e3)
+    return _face_quantile(a_ref * (np.maximum(ranges, MIN_RANGE) / reference_range) ** 2)

@@ -20,7 +20,7 @@ from scipy.spatial import cKDTree
 from scipy.special import ndtr, stdtrit
 
 from ..geometry.boxes import Box3D, wrap_angle, yaw_from_direction
-from ..geometry.surface import footprint_ray_residuals, quantile_soft_l1
+from ..geometry.surface import footprint_ray_residuals, quantile_soft_l1, range_quantile
 from .config import FootprintConfig, InitConfig, OrientationConfig, VelocityConfig
 from .depth import bounding_region, depth_to_disparity, make_depth_source, matching_region, stereo_depth_in
 from .frames import StereoFrame
@@ -487,6 +487,8 @@ def fit_footprint(points: np.ndarray, yaw: float, cameras: np.ndarray,
         half[k] = 0.5 * dim
     if cfg.refine:
         quantile = cfg.fit_quantile if quantile is None else quantile
+        if cfg.quantile_by_range:  # the faces' quantile of each point's depth at its range
+            quantile = range_quantile(np.linalg.norm(local - cam_local, axis=1), quantile, cfg.reference_range)
 
         def residuals(c: np.ndarray) -> np.ndarray:
             # sum f^2 = 2 scale sum quantile_soft_l1(r): least squares on the signed root

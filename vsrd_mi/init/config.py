@@ -219,6 +219,11 @@ class FootprintConfig:
     #: the faces at the front of the smear. 0.1 for moving cars too doubled their mean centre
     #: error on the development seeds (0.24 -> 0.48 m).
     fit_quantile_dynamic: float = 0.5
+    #: Take ``fit_quantile`` as the faces' quantile at ``reference_range`` and adapt it to each
+    #: point's range (:func:`vsrd_mi.geometry.surface.range_quantile`: stereo noise grows with
+    #: the square of the range and, far away, dwarfs how far the body lies behind the box's
+    #: faces, so the faces move from a low quantile of the depths towards their median).
+    quantile_by_range: bool = True
     #: A refinement moving the centre further than this (m, about a car length) from its initial
     #: value is rejected as diverged. Far cars need shifts of ~2 m: their edge percentiles sit
     #: well in front of the surface (depth noise ~0.8 m at 33 m on KITTI-360).

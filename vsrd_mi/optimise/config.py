@@ -233,6 +233,9 @@ class SurfaceConfig:
     #: bumpers and wheel arches; windows and bonnet slope back), so the median (0.5) would put the
     #: faces on the body's middle depth.
     quantile: float = 0.1
+    #: ``quantile`` holds at ``reference_range``; each point's own follows its range
+    #: (:func:`vsrd_mi.geometry.surface.range_quantile`), as the initialisation's footprint fit's.
+    quantile_by_range: bool = True
 
     def __post_init__(self) -> None:
         if self.scale <= 0 or self.reference_range <= 0 or self.max_points < 1 or not 0 < self.quantile < 1:

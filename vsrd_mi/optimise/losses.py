@@ -17,7 +17,7 @@ from vsrd_plugins.sdf import DecodedBoxes, InstanceField, box_sdf_local
 from ..geometry import boxes2d
 from ..geometry.boxes import CORNER_SIGNS
 from ..geometry.camera import NEAR_PLANE, footprint
-from ..geometry.surface import footprint_ray_residuals, quantile_soft_l1
+from ..geometry.surface import footprint_ray_residuals, quantile_soft_l1, range_quantile
 from ..geometry.vehicle_sizes import tight_width
 from ..geometry.xp import drjit_namespace
 from .config import CarProfile
@@ -336,10 +336,11 @@ class VisibleSurface:
     box are kept (a fixed random subset drawn with ``seed``).
     """
 
-    DRJIT_STRUCT = {"box": object, "w": object, "points": object, "cameras": object}
+    DRJIT_STRUCT = {"box": object, "w": object, "points": object, "cameras": object, "quantile": object}
 
     def __init__(self, points: list, cameras: list, weights: np.ndarray, scale: float,
-                 reference_range: float, max_points: int, quantile: float, seed: int = 0):
+                 reference_range: float, max_points: int, quantile: float, seed: int = 0,
+                 by_range: bool = False):
         rng = np.random.default_rng(seed)
         self.count = len(points)
         self.quantile = float(quantile)
@@ -362,6 +363,9 @@ class VisibleSurface:
             self.w = to_float(np.concatenate(lane_w))
             self.points = (to_float(pts[:, 0]), to_float(pts[:, 2]))
             self.cameras = (to_float(cams[:, 0]), to_float(cams[:, 2]))
+            if by_range:  # per point, the faces' quantile at its range (horizontal, as the residuals')
+                ranges = np.hypot(pts[:, 0] - cams[:, 0], pts[:, 2] - cams[:, 2])
+                self.quantile = to_float(range_quantile(ranges, self.quantile, self.reference_range))
 
     @property
     def active(self) -> bool:

@@ -461,7 +461,7 @@ class BoxOptimiser:
                   for sp, d in zip(self.surface_points, self.dynamic)]
         term = losses.VisibleSurface([p for p, _ in parked], [c for _, c in parked], np.full(self.n, w),
                                      sc.scale, sc.reference_range, sc.max_points, sc.quantile,
-                                     seed=self.cfg.seed)
+                                     seed=self.cfg.seed, by_range=sc.quantile_by_range)
         return term if term.active else None
 
     def _box_vector(self) -> np.ndarray:
