@@ -10,7 +10,7 @@ import pytest
 import trimesh
 
 from vsrd_mi.geometry.boxes import Box3D, wrap_angle
-from vsrd_mi.geometry.surface import quantile_soft_l1
+from vsrd_mi.geometry.surface import quantile_soft_l1, range_quantile
 from vsrd_mi.init import InitConfig, StereoFrame, initialise, save_point_clouds_ply
 from vsrd_mi.init.attributes import (consistent_views, dominant_yaw, estimate_velocity, fit_footprint,
                                      initialise_instance, is_dynamic, ray_residuals, reference_offset,
@@ -327,8 +327,9 @@ def test_footprint_corrects_visible_surface_bias():
 
 def test_footprint_fit_minimises_the_quantile_soft_l1_of_the_ray_residuals():
     """Noisy points of a car's rear and side: the refined centre is the minimum of the mean
-    ``quantile_soft_l1`` of the ray residuals (checked on a 1 cm grid around it); a lower
-    ``fit_quantile`` leaves fewer points in front of the faces (0.5: about half)."""
+    ``quantile_soft_l1`` of the ray residuals, each point's quantile that of its range
+    (``range_quantile``; checked on a 1 cm grid around it); a lower ``fit_quantile`` leaves fewer
+    points in front of the faces (0.5: about half)."""
     rng = np.random.default_rng(4)
     yaw = 0.2
     box = Box3D([-3.0, 0.8, 14.0], CAR, yaw)
@@ -342,10 +343,13 @@ def test_footprint_fit_minimises_the_quantile_soft_l1_of_the_ray_residuals():
         c, size = fit_footprint(pts, yaw, np.zeros_like(pts), cfg)
         half, c_local = size[[0, 2]] / 2, c[[0, 2]] @ basis.T
 
+        # each point's quantile follows its range (the cameras are at the origin)
+        q_points = range_quantile(np.linalg.norm(local, axis=1), q, cfg.reference_range)
+
         def cost(centre):
             r = ray_residuals(local - centre, np.repeat(-centre[None], len(local), 0), half,
                               cfg.reference_range)
-            return float(np.mean(quantile_soft_l1(r, cfg.fit_loss_scale, q))), float(np.mean(r < 0))
+            return float(np.mean(quantile_soft_l1(r, cfg.fit_loss_scale, q_points))), float(np.mean(r < 0))
 
         best, in_front[q] = cost(c_local)
         steps = np.arange(-5, 6) * 0.01
