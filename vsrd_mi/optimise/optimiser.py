@@ -26,6 +26,7 @@ kernels (docs/speed.md, "The frozen box step").
 
 from __future__ import annotations
 
+import gc
 import time as _time
 from dataclasses import dataclass, field, replace
 
@@ -315,8 +316,14 @@ class BoxOptimiser:
             frozen = dr.freeze(box_step, state_fn=lambda opts, latents, fixed, lanes, *rest: (lanes.count,))
             fixed = {k: mi.Float(dr.detach(self.params[f"{INTEGRATOR}.{k}"])) for k in ("dynamic", "velocity")}
         projected_next = None
-        threads = dr.thread_count()
+        threads, collecting = dr.thread_count(), gc.isenabled()
         if frozen is not None:
+            # no Dr.Jit memory may be released while the step records (a release deferred until
+            # pending kernels finish cannot be recorded, and Dr.Jit aborts): collect Python's
+            # garbage and finish pending work now, and keep the collector off until the loop ends
+            gc.collect()
+            dr.sync_thread()
+            gc.disable()
             dr.set_thread_count(FROZEN_STEP_THREADS)
         try:
             for step in range(cfg.steps):
@@ -340,6 +347,8 @@ class BoxOptimiser:
                         break
         finally:
             dr.set_thread_count(threads)
+            if collecting:
+                gc.enable()
         self.recordings = frozen.n_recordings if frozen is not None else 0
         self._write_boxes(opt_box, opt_vel)
         for o in self._opt_rdf.values() if self._opt_rdf else ():
