@@ -333,7 +333,9 @@ class VisibleSurface:
 
     ``points[n]`` / ``cameras[n]`` are (M, 3) arrays in the optimisation frame (static boxes: the
     points do not move), or None for a box without points (weight 0). At most ``max_points`` per
-    box are kept (a fixed random subset drawn with ``seed``).
+    box are kept (a fixed random subset drawn with ``seed``). With ``by_range`` each point weighs
+    the quantile of its own horizontal range (:func:`vsrd_mi.geometry.surface.range_quantile`,
+    ``quantile`` at ``reference_range``) instead of ``quantile`` itself.
     """
 
     DRJIT_STRUCT = {"box": object, "w": object, "points": object, "cameras": object, "quantile": object}
