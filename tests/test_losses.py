@@ -558,6 +558,25 @@ def test_visible_surface_is_a_quantile_soft_l1_of_the_range_scaled_residuals():
         assert got == pytest.approx(by_hand(shift), rel=1e-3), shift
 
 
+def test_visible_surface_subset_of_a_box_does_not_depend_on_the_other_boxes():
+    """With more points than ``max_points`` each box keeps its own fixed draw: the points box 1
+    keeps are the same whether or not box 0 has points."""
+    rng = np.random.default_rng(8)
+    centres, sizes, yaws = np.array([[0.5, 0.8, 12.0], [-4.0, 0.8, 20.0]]), np.array([[1.8, 1.5, 4.4], [2.0, 1.9, 5.0]]), np.array([0.0, 0.7])
+    clouds = [surface_cloud(centres[n], sizes[n], yaws[n], np.zeros(3), 200, rng) for n in range(2)]
+
+    def kept_of_box_1(first) -> np.ndarray:
+        term = losses.VisibleSurface([first, clouds[1][0]], [None if first is None else clouds[0][1], clouds[1][1]],
+                                     np.array([1.0, 1.0]), scale=0.2, reference_range=10.0, max_points=50,
+                                     quantile=0.1, seed=3)
+        box = np.array(term.box)
+        return np.stack([np.array(term.points[0])[box == 1], np.array(term.points[1])[box == 1]], 1)
+
+    alone, both = kept_of_box_1(None), kept_of_box_1(clouds[0][0])
+    assert len(alone) == 50
+    np.testing.assert_array_equal(alone, both)
+
+
 def test_visible_surface_gradients_match_finite_differences():
     rng = np.random.default_rng(6)
     centres, sizes, yaws = np.array([[0.5, 0.8, 12.0], [-4.0, 0.8, 20.0]]), np.array([[1.8, 1.5, 4.4], [2.0, 1.9, 5.0]]), np.array([0.3, 0.7])
@@ -880,10 +899,11 @@ def test_shape_prior_enters_the_init_term_with_the_initial_boxes(scene):
         assert result.loss_history["init"][0] == pytest.approx(expected, abs=2e-3), (w, w_dyn)
 
 
-def test_visible_surface_enters_the_init_term_for_parked_boxes_only(scene):
+def test_visible_surface_enters_the_init_term_with_its_weight_per_motion(scene):
     """Every box gets points on its visible faces pushed 0.3 m in front of them: at step 0 the
     init term (all other priors off, anchor at the start) is the visible-surface loss of the
-    parked boxes, with the moving boxes' points ignored; no points, or weight 0, no term."""
+    parked boxes at ``weights.surface`` plus the moving boxes' at ``weights.surface_dynamic``;
+    no points, or both weights 0, no term."""
     obs, gt = scene
     rng = np.random.default_rng(7)
     cam = obs.cam_to_opt[0][:3, 3]
@@ -892,19 +912,26 @@ def test_visible_surface_enters_the_init_term_for_parked_boxes_only(scene):
     assert 0 < moving.sum() < len(gt)
     base = quick(residual=False, steps=1)
     sc = base.surface
-    expected = losses.VisibleSurface([None if m else c[0] for c, m in zip(clouds, moving)],
-                                     [None if m else c[1] for c, m in zip(clouds, moving)],
-                                     np.full(len(gt), 5.0), sc.scale, sc.reference_range, sc.max_points,
-                                     sc.quantile, seed=base.seed, by_range=sc.quantile_by_range).loss(field_of(
-                                         np.stack([b.centre for b in gt]), np.stack([b.size for b in gt]),
-                                         np.array([b.yaw for b in gt])).decode())
-    expected = values(expected)[0]
-    assert expected > 0.01
-    for w, points, want in ((5.0, clouds, expected), (0.0, clouds, 0.0), (5.0, None, 0.0)):
+    dec = field_of(np.stack([b.centre for b in gt]), np.stack([b.size for b in gt]),
+                   np.array([b.yaw for b in gt])).decode()
+
+    def expected(w_parked: float, w_moving: float) -> float:
+        term = losses.VisibleSurface([c[0] for c in clouds], [c[1] for c in clouds],
+                                     np.where(moving, w_moving, w_parked), sc.scale, sc.reference_range,
+                                     sc.max_points, sc.quantile, seed=base.seed, by_range=sc.quantile_by_range)
+        return values(term.loss(dec))[0] if term.active else 0.0
+
+    parked_only, moving_only = expected(5.0, 0.0), expected(0.0, 3.0)
+    assert parked_only > 0.01 and moving_only > 0.01
+    assert expected(5.0, 3.0) == pytest.approx(parked_only + moving_only, rel=1e-5)
+    for w, w_dyn, points, want in ((5.0, 0.0, clouds, parked_only), (0.0, 3.0, clouds, moving_only),
+                                   (5.0, 3.0, clouds, parked_only + moving_only), (0.0, 0.0, clouds, 0.0),
+                                   (5.0, 3.0, None, 0.0)):
         cfg = base.replace(weights=dataclasses.replace(base.weights, init=0.0, init_dynamic=0.0, init_yaw=0.0,
-                                                       init_yaw_dynamic=0.0, width_prior=0.0, surface=w))
+                                                       init_yaw_dynamic=0.0, width_prior=0.0, surface=w,
+                                                       surface_dynamic=w_dyn))
         result = BoxOptimiser(obs, gt, cfg, init_boxes=gt, surface_points=points).run()
-        assert result.loss_history["init"][0] == pytest.approx(want, rel=1e-3, abs=1e-6), (w, points is None)
+        assert result.loss_history["init"][0] == pytest.approx(want, rel=1e-3, abs=1e-6), (w, w_dyn, points is None)
 
 
 def test_no_dynamic_instance_no_velocity(static_run, residual_run):

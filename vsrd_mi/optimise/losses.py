@@ -332,10 +332,12 @@ class VisibleSurface:
     the sum over boxes divided by their number.
 
     ``points[n]`` / ``cameras[n]`` are (M, 3) arrays in the optimisation frame (static boxes: the
-    points do not move), or None for a box without points (weight 0). At most ``max_points`` per
-    box are kept (a fixed random subset drawn with ``seed``). With ``by_range`` each point weighs
-    the quantile of its own horizontal range (:func:`vsrd_mi.geometry.surface.range_quantile`,
-    ``quantile`` at ``reference_range``) instead of ``quantile`` itself.
+    points do not move; moving boxes: their points moved to the target time), or None for a box
+    without points (weight 0). At most ``max_points`` per box are kept (a fixed random subset,
+    drawn for box ``n`` with the seed ``(seed, n)``, so that it does not depend on the other
+    boxes). With ``by_range`` each point weighs the quantile of its own horizontal range
+    (:func:`vsrd_mi.geometry.surface.range_quantile`, ``quantile`` at ``reference_range``) instead
+    of ``quantile`` itself.
     """
 
     DRJIT_STRUCT = {"box": object, "w": object, "points": object, "cameras": object, "quantile": object}
@@ -343,7 +345,6 @@ class VisibleSurface:
     def __init__(self, points: list, cameras: list, weights: np.ndarray, scale: float,
                  reference_range: float, max_points: int, quantile: float, seed: int = 0,
                  by_range: bool = False):
-        rng = np.random.default_rng(seed)
         self.count = len(points)
         self.quantile = float(quantile)
         self.scale, self.reference_range = float(scale), float(reference_range)
@@ -351,7 +352,10 @@ class VisibleSurface:
         for n, (p, c) in enumerate(zip(points, cameras)):
             if p is None or len(p) == 0 or weights[n] <= 0:
                 continue
-            keep = np.sort(rng.choice(len(p), max_points, replace=False)) if len(p) > max_points else slice(None)
+            if len(p) > max_points:  # each box its own draw: it must not depend on the other boxes
+                keep = np.sort(np.random.default_rng([seed, n]).choice(len(p), max_points, replace=False))
+            else:
+                keep = slice(None)
             p, c = np.asarray(p)[keep], np.asarray(c)[keep]
             box.append(np.full(len(p), n))
             lane_w.append(np.full(len(p), weights[n] / len(p)))

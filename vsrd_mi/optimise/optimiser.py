@@ -461,15 +461,17 @@ class BoxOptimiser:
         return [float(x[0]) for x in (total, l_proj, l_sil, l_eik, l_init)], sdf_evals
 
     def _visible_surface(self) -> losses.VisibleSurface | None:
-        """The visible-surface term of the parked boxes that have points (None when off)."""
-        w, sc = self.cfg.weights.surface, self.cfg.surface
-        if w <= 0 or self.surface_points is None:
+        """The visible-surface term of the boxes that have points and a weight (None when off):
+        ``weights.surface`` for parked boxes, ``weights.surface_dynamic`` for moving ones, whose
+        points the initialisation moved to the target time."""
+        w, sc = self.cfg.weights, self.cfg.surface
+        weights = np.where(self.dynamic, w.surface_dynamic, w.surface)
+        if not np.any(weights > 0) or self.surface_points is None:
             return None
-        # moving cars' clouds are spread over their path; the init anchor holds those
-        parked = [sp if sp is not None and not d else (None, None)
-                  for sp, d in zip(self.surface_points, self.dynamic)]
-        term = losses.VisibleSurface([p for p, _ in parked], [c for _, c in parked], np.full(self.n, w),
-                                     sc.scale, sc.reference_range, sc.max_points, sc.quantile,
+        points = [sp if sp is not None else (None, None) for sp in self.surface_points]
+        term = losses.VisibleSurface([p for p, _ in points], [c for _, c in points], weights,
+                                     sc.scale, sc.reference_range, sc.max_points,
+                                     sc.quantile,
                                      seed=self.cfg.seed, by_range=sc.quantile_by_range)
         return term if term.active else None
 
