@@ -44,6 +44,17 @@ def test_overrides_set_nested_and_top_level_fields():
     assert not corners.car_profile.enabled and AutolabelConfig.from_dict(corners.to_dict()) == corners
 
 
+def test_overrides_set_tuple_fields_from_json_lists():
+    """A tuple field (e.g. the initialisation's typical car size) takes a JSON list of as many
+    numbers; anything else is refused naming the key."""
+    cfg = default_config().with_overrides(["stereo_init.footprint.typical_size=[1.7, 1.5, 4]"])
+    assert cfg.stereo_init.footprint.typical_size == (1.7, 1.5, 4.0)
+    assert AutolabelConfig.from_dict(cfg.to_dict()) == cfg
+    for bad in ("[1.7, 1.5]", "[1.7, true, 4]", "1.7"):
+        with pytest.raises(ValueError, match="stereo_init.footprint.typical_size"):
+            default_config().with_overrides([f"stereo_init.footprint.typical_size={bad}"])
+
+
 def test_the_residual_field_needs_the_silhouette_term():
     """The residual field acts only through the rendered silhouettes: switching it on without
     their loss is refused with the fix in the message; with it, it is accepted."""

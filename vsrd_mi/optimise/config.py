@@ -421,6 +421,11 @@ class AutolabelConfig:
             except json.JSONDecodeError:
                 value = text
             old = node[leaf]
+            if isinstance(old, tuple) and isinstance(value, list):  # JSON has no tuples
+                if len(value) != len(old) or not all(isinstance(v, (int, float)) and not isinstance(v, bool)
+                                                     for v in value):
+                    raise ValueError(f"--set {key}: {text!r} is not a list of {len(old)} numbers")
+                value = tuple(float(v) for v in value)
             # a float field takes any number; other fields exactly their own type (bool is no int)
             accepted = (int, float) if isinstance(old, float) else type(old)
             if isinstance(value, bool) != isinstance(old, bool) or not isinstance(value, accepted):
