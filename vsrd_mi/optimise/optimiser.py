@@ -56,14 +56,20 @@ FROZEN_STEP_THREADS = 1
 EIKONAL_SPREAD = 1.2
 
 
-def decode_latents(opts: list, latents: BoxLatents, fixed: dict):
-    """The boxes the Adam optimisers' latents hold: ``(decoded boxes, physical parameters)``.
-    ``opts[0]`` holds the box latents, ``opts[1]`` (when given) the velocities; ``fixed`` the
-    parameters not optimised (``dynamic``; ``velocity`` without a velocity optimiser)."""
+def latent_values(opts: list) -> dict:
+    """The latents the Adam optimisers hold: ``opts[0]``'s box latents and, when given,
+    ``opts[1]``'s velocities."""
     lat = {k: opts[0][k] for k in BOX_LATENTS}
     if len(opts) > 1:
         lat[VELOCITY_LATENT] = opts[1][VELOCITY_LATENT]
-    phys = latents.decode(lat)
+    return lat
+
+
+def decode_latents(opts: list, latents: BoxLatents, fixed: dict):
+    """The boxes the Adam optimisers' latents hold: ``(decoded boxes, physical parameters)``.
+    ``opts`` as in :func:`latent_values`; ``fixed`` the parameters not optimised (``dynamic``;
+    ``velocity`` without a velocity optimiser)."""
+    phys = latents.decode(latent_values(opts))
     return InstanceField.decode_parameters({**fixed, **phys}, latents.count), phys
 
 
@@ -288,10 +294,8 @@ class BoxOptimiser:
     def _write_boxes(self, opt_box: mi.ad.Adam, opt_vel: mi.ad.Adam | None) -> None:
         """Decode the latents held by the Adam optimisers into the integrator's box parameters
         (with their AD graph: the gradients reach the latents)."""
-        latents = {k: opt_box[k] for k in BOX_LATENTS}
-        if opt_vel is not None:
-            latents[VELOCITY_LATENT] = opt_vel[VELOCITY_LATENT]
-        for key, value in self.latents.decode(latents).items():
+        opts = [opt_box] if opt_vel is None else [opt_box, opt_vel]
+        for key, value in self.latents.decode(latent_values(opts)).items():
             self.params[f"{INTEGRATOR}.{key}"] = value
         self.params.update()
 
