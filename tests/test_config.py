@@ -40,7 +40,8 @@ def test_overrides_set_nested_and_top_level_fields():
     assert AutolabelConfig.from_dict(cfg.to_dict()) == cfg
     # the paper's box corners: a zero car profile, round-tripped through the dict form
     corners = default_config().with_overrides(["car_profile.clearance=0", "car_profile.overhang=0",
-                                                 "car_profile.corner=0", "car_profile.mirror=0"])
+                                                 "car_profile.corner=0", "car_profile.mirror=0",
+                                                 "car_profile.roof=1"])
     assert not corners.car_profile.enabled and AutolabelConfig.from_dict(corners.to_dict()) == corners
 
 

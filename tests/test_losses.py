@@ -176,7 +176,7 @@ def test_car_profile_projection_by_hand():
     v = 286.875) and the wheels' ground contact (y = 1 at z = 8.9: v = 296.18)."""
     field, centre, size = straight_ahead()
     lanes = losses.ProjectionLanes(np.array([0]), np.zeros(1), np.eye(4)[None], np.zeros((1, 4)), K, IMAGE_BOUNDS)
-    x1, y1, x2, y2, valid = losses.projected_boxes(field.decode(), lanes, CarProfile(clearance=0.25, overhang=0.9, corner=0.0, mirror=0.0))
+    x1, y1, x2, y2, valid = losses.projected_boxes(field.decode(), lanes, CarProfile(clearance=0.25, overhang=0.9, corner=0.0, mirror=0.0, roof=1.0))
     got = np.array([values(v)[0] for v in (x1, y1, x2, y2)])
     by_hand = [288.75, 202.5, 413.75, 240 + 500 * 1.0 / 8.9]
     np.testing.assert_allclose(got, by_hand, atol=2e-3)
@@ -184,7 +184,7 @@ def test_car_profile_projection_by_hand():
     np.testing.assert_allclose(got, np_profile_footprint(b["centre"][0], b["size"][0], 0.0, np.eye(4), 0.25, 0.9),
                                atol=2e-4)
     # a zero profile is the box's corners
-    zero = losses.projected_boxes(field.decode(), lanes, CarProfile(clearance=0.0, overhang=0.0, corner=0.0, mirror=0.0))
+    zero = losses.projected_boxes(field.decode(), lanes, CarProfile(clearance=0.0, overhang=0.0, corner=0.0, mirror=0.0, roof=1.0))
     plain = losses.projected_boxes(field.decode(), lanes)
     assert [values(v)[0] for v in zero[:4]] == [values(v)[0] for v in plain[:4]]
     # a camera below the bumpers (moved 1 m down: the box's bottom at y = 0): the body's underside
@@ -193,7 +193,7 @@ def test_car_profile_projection_by_hand():
     low = np.eye(4)
     low[1, 3] = -1.0
     lanes = losses.ProjectionLanes(np.array([0]), np.zeros(1), low[None], np.zeros((1, 4)), K, IMAGE_BOUNDS)
-    got = losses.projected_boxes(field.decode(), lanes, CarProfile(clearance=0.25, overhang=0.9, corner=0.0, mirror=0.0))
+    got = losses.projected_boxes(field.decode(), lanes, CarProfile(clearance=0.25, overhang=0.9, corner=0.0, mirror=0.0, roof=1.0))
     np.testing.assert_allclose([values(v)[0] for v in got[1:4:2]], [140.0, 240.0], atol=2e-3)
 
 
@@ -203,7 +203,7 @@ def test_car_profile_parts_are_capped_on_small_boxes():
     field = field_of(np.array([[0.0, 0.5, 10.0]]), np.array([[1.0, 0.5, 1.0]]), np.zeros(1))
     b = field.boxes()
     lanes = losses.ProjectionLanes(np.array([0]), np.zeros(1), np.eye(4)[None], np.zeros((1, 4)), K, IMAGE_BOUNDS)
-    got = losses.projected_boxes(field.decode(), lanes, CarProfile(clearance=0.25, overhang=0.9, corner=0.0, mirror=0.0))
+    got = losses.projected_boxes(field.decode(), lanes, CarProfile(clearance=0.25, overhang=0.9, corner=0.0, mirror=0.0, roof=1.0))
     size = b["size"][0]
     expected = np_profile_footprint(b["centre"][0], size, 0.0, np.eye(4), min(0.25, 0.3 * size[1]),
                                     min(0.9, 0.3 * size[2]))
@@ -238,12 +238,12 @@ def test_car_profile_cut_corners_project_the_octagonal_prism(yaw):
     field = field_of(centre[None], size[None], np.array([yaw]))
     b = field.boxes()
     lanes = losses.ProjectionLanes(np.array([0]), np.zeros(1), np.eye(4)[None], np.zeros((1, 4)), K, IMAGE_BOUNDS)
-    profile = CarProfile(clearance=0.25, overhang=0.9, corner=0.3, mirror=0.0)
+    profile = CarProfile(clearance=0.25, overhang=0.9, corner=0.3, mirror=0.0, roof=1.0)
     got = np.array([values(v)[0] for v in losses.projected_boxes(field.decode(), lanes, profile)[:4]])
     expected = np_cut_corner_footprint(b["centre"][0], b["size"][0], float(b["yaw"][0]), np.eye(4), 0.25, 0.9, 0.3)
     np.testing.assert_allclose(got, expected, atol=2e-3)
     uncut = np.array([values(v)[0] for v in losses.projected_boxes(
-        field.decode(), lanes, CarProfile(clearance=0.25, overhang=0.9, corner=0.0, mirror=0.0))[:4]])
+        field.decode(), lanes, CarProfile(clearance=0.25, overhang=0.9, corner=0.0, mirror=0.0, roof=1.0))[:4]])
     assert got[0] >= uncut[0] - 1e-4 and got[2] <= uncut[2] + 1e-4
     if yaw in (0.6, math.pi / 4):
         assert got[0] > uncut[0] + 1.0 and got[2] < uncut[2] - 1.0  # oblique: both sides in by > 1 px
@@ -268,7 +268,7 @@ def test_car_profile_cut_corners_alone_act_without_clearance():
     field = field_of(np.array([[0.5, 0.2, 12.0]]), np.array([[1.8, 1.5, 4.4]]), np.array([0.6]))
     b = field.boxes()
     lanes = losses.ProjectionLanes(np.array([0]), np.zeros(1), np.eye(4)[None], np.zeros((1, 4)), K, IMAGE_BOUNDS)
-    got = losses.projected_boxes(field.decode(), lanes, CarProfile(clearance=0.0, overhang=0.0, corner=0.3, mirror=0.0))
+    got = losses.projected_boxes(field.decode(), lanes, CarProfile(clearance=0.0, overhang=0.0, corner=0.3, mirror=0.0, roof=1.0))
     w, h, l = 0.5 * b["size"][0]
     plan = [(sx * w, sz * (l - 0.3)) for sx in (-1, 1) for sz in (-1, 1)] + [
         (sx * (w - 0.3), sz * l) for sx in (-1, 1) for sz in (-1, 1)]
@@ -279,6 +279,58 @@ def test_car_profile_cut_corners_alone_act_without_clearance():
     uv = uv[:, :2] / uv[:, 2:]
     np.testing.assert_allclose([values(v)[0] for v in got[:4]],
                                [uv[:, 0].min(), uv[:, 1].min(), uv[:, 0].max(), uv[:, 1].max()], atol=2e-3)
+
+
+def np_roof_profile_footprint(centre, size, yaw, world_to_cam, profile: CarProfile) -> np.ndarray:
+    """Independent footprint of the roofed profile: the vertices of the octagonal body prism and
+    the wheel box, both from their bottoms to ``waist`` of the height, and of the roof box
+    (``roof`` of the length, ``corner + mirror`` in from each side, up to the box's top)."""
+    w, h, l = 0.5 * np.asarray(size, float)
+    cl, co, m = profile.clearance, profile.corner, profile.mirror
+    top, waist = -h, h - 2 * h * profile.waist  # y down: the box's top, the body's top
+    plan = [(sx * (w - m), sz * (l - co)) for sx in (-1, 1) for sz in (-1, 1)]
+    plan += [(sx * (w - m - co), sz * l) for sx in (-1, 1) for sz in (-1, 1)]
+    local = [(x, y, z) for x, z in plan for y in (waist, h - cl)]
+    local += [(sx * (w - m), y, sz * (l - profile.overhang)) for sx in (-1, 1) for y in (waist, h)
+              for sz in (-1, 1)]
+    local += [(sx * (w - m - co), y, sz * l * profile.roof) for sx in (-1, 1) for y in (top, h - cl)
+              for sz in (-1, 1)]
+    c, s = math.cos(yaw), math.sin(yaw)
+    R = np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])
+    cam = (np.asarray(centre) + np.array(local) @ R.T) @ world_to_cam[:3, :3].T + world_to_cam[:3, 3]
+    uv = cam @ K.T
+    uv = uv[:, :2] / uv[:, 2:]
+    return np.array([uv[:, 0].min(), uv[:, 1].min(), uv[:, 0].max(), uv[:, 1].max()])
+
+
+@pytest.mark.parametrize("yaw", [0.0, 0.6, 2.0])
+@pytest.mark.parametrize("camera_y", [0.0, 0.8])
+def test_car_profile_roof_lowers_only_the_top_edge(yaw, camera_y):
+    """With a roof the box's top is reached only over ``roof`` of its length: the footprint is the
+    independent enumeration's, and against the roofless profile only its top edge moves, down
+    (a 1.8 m tall box whose top is 0.6 m above the camera, and 0.2 m below it)."""
+    centre, size = np.array([0.5, 0.3, 9.0]), np.array([2.0, 1.8, 5.2])
+    field = field_of(centre[None], size[None], np.array([yaw]))
+    b = field.boxes()
+    cam = np.eye(4)
+    cam[1, 3] = camera_y  # the box's top 0.6 - camera_y above the camera (y down)
+    lanes = losses.ProjectionLanes(np.array([0]), np.zeros(1), cam[None], np.zeros((1, 4)), K, IMAGE_BOUNDS)
+    profile = CarProfile()
+    assert profile.roof < 1.0
+    got = np.array([values(v)[0] for v in losses.projected_boxes(field.decode(), lanes, profile)[:4]])
+    expected = np_roof_profile_footprint(b["centre"][0], b["size"][0], float(b["yaw"][0]), cam, profile)
+    np.testing.assert_allclose(got, expected, atol=2e-3)
+    flat = dataclasses.replace(profile, roof=1.0)
+    roofless = np.array([values(v)[0] for v in losses.projected_boxes(field.decode(), lanes, flat)[:4]])
+    np.testing.assert_allclose(got[[0, 2, 3]], roofless[[0, 2, 3]], atol=2e-3)
+    assert got[1] > roofless[1] + 0.5  # the top edge lower in the image by more than half a pixel
+
+
+def test_car_profile_rejects_roof_and_waist_out_of_range():
+    for kwargs, name in (({"roof": 0.0}, "roof"), ({"roof": 1.2}, "roof"), ({"waist": 0.3}, "waist"),
+                         ({"waist": 1.1}, "waist")):
+        with pytest.raises(ValueError, match=f"CarProfile: {name} must be in"):
+            CarProfile(**kwargs)
 
 
 def test_car_profile_rejects_negative_values():
@@ -383,14 +435,15 @@ def ad_and_central_differences(field, keys, loss, eps: dict) -> tuple[dict, dict
     return ad, fd
 
 
-@pytest.mark.parametrize("profile", [None, CarProfile(clearance=0.25, overhang=0.9, corner=0.0, mirror=0.0), CarProfile()])
+@pytest.mark.parametrize("profile", [None, CarProfile(clearance=0.25, overhang=0.9, corner=0.0, mirror=0.0, roof=1.0), CarProfile()])
 def test_projection_loss_gradients_match_finite_differences(profile):
     field, lanes = two_box_lanes()
     keys = ("centre", "size", "yaw", "velocity")
-    # steps: 0.3 mm of centre, 0.4 mm of size, 0.2 mrad of yaw, 0.2 mm/frame of velocity (~0.02-0.1
+    # steps: 0.6 mm of centre, 0.4 mm of size, 0.2 mrad of yaw, 0.2 mm/frame of velocity (~0.02-0.2
     # px: smaller than the pixel errors, so no Huber, corner or mirror switch in between; 1 mm of
-    # centre height crosses one in the default profile)
-    eps = {"centre": 3e-4, "size": 4e-4, "yaw": 2e-4, "velocity": 2e-4}
+    # centre height crosses one in the default profile; below 0.5 mm the roof's single-precision
+    # differences of the centre lose two digits to cancellation)
+    eps = {"centre": 6e-4, "size": 4e-4, "yaw": 2e-4, "velocity": 2e-4}
     ad, fd = ad_and_central_differences(
         field, keys, lambda dec: losses.projection_loss(dec, lanes, BETA, W_HUBER, W_DIOU, profile=profile), eps)
     checked = 0

@@ -146,23 +146,43 @@ class CarProfile:
     side than the box: manufacturers' widths with and without mirrors differ by 0.21-0.25 m on
     passenger cars (VW Golf VII 2.027 / 1.799 m, Passat B8 2.083 / 1.832 m, BMW X5 G05 2.218 /
     2.004 m, Tesla Model 3 2.089 / 1.849 m), 0.12 m a side; vans and pickups have larger mirrors.
-    The car's other departures from its box (roof, hood) vary by model and are left to the loss;
-    ``overhang = clearance = corner = mirror = 0`` projects the box corners (the paper).
+    A car reaches its box's top only over its roof: bonnet, boot deck or pickup bed end lower.
+    Seen from a camera below the roof, the box's top corners at the far end project above the
+    roof, and for a vehicle taller than the camera (SUVs, vans, pickups over KITTI-360's 1.55 m)
+    the near end's do: matching them to the mask's top edge lowers the box. So the projected body
+    ends at ``waist`` of the height outside a roof that spans ``roof`` of the length, centred
+    (the front is not known while boxes are fitted). Both are proportions of common body styles,
+    not fitted to any run (docs/accuracy.md): flat roofs span about 0.4 of a saloon's or
+    hatchback's length (VW Golf VII ~1.8 of 4.26 m, Passat B8 ~1.9 of 4.77 m), 0.5 of an SUV's,
+    0.3 of a double-cab pickup's and 0.65 of a van's; bonnets, boot decks and pickup beds end at
+    0.6-0.7 of the height. ``roof = 1`` puts the whole top at the box's top.
+    ``overhang = clearance = corner = mirror = 0`` and ``roof = 1`` project the box corners (the
+    paper).
     """
 
     clearance: float = 0.25
     overhang: float = 0.9
     corner: float = 0.3
     mirror: float = 0.12
+    #: Share of the box's length over which the car reaches the box's top (centred).
+    roof: float = 0.45
+    #: Height of the body outside the roof, as a share of the box's height.
+    waist: float = 0.65
 
     @property
     def enabled(self) -> bool:
-        return self.clearance > 0 or self.overhang > 0 or self.corner > 0 or self.mirror > 0
+        return (self.clearance > 0 or self.overhang > 0 or self.corner > 0 or self.mirror > 0
+                or self.roof < 1.0)
 
     def __post_init__(self) -> None:
         if self.clearance < 0 or self.overhang < 0 or self.corner < 0 or self.mirror < 0:
             raise ValueError("CarProfile: clearance, overhang, corner and mirror must be >= 0, got "
                              f"{self.clearance}, {self.overhang}, {self.corner}, {self.mirror}")
+        if not 0.0 < self.roof <= 1.0:
+            raise ValueError(f"CarProfile: roof must be in (0, 1] (a share of the length), got {self.roof}")
+        if not 0.5 <= self.waist <= 1.0:
+            raise ValueError("CarProfile: waist must be in [0.5, 1] (a share of the height above the "
+                             f"bumpers' underside), got {self.waist}")
 
 
 @dataclass(frozen=True)
@@ -453,7 +473,8 @@ def paper_config() -> AutolabelConfig:
     yaw priors) plus the paper's silhouette term (``LossWeights.silhouette``, which the residual
     field acts through) and the size prior, which 3000 steps need (``LossWeights.init_size``), and the
     projection loss projects the default's :class:`CarProfile` (the paper projects the box's corners:
-    ``--set car_profile.clearance=0 --set car_profile.overhang=0 --set car_profile.corner=0``).
+    ``--set car_profile.clearance=0 --set car_profile.overhang=0 --set car_profile.corner=0
+    --set car_profile.mirror=0 --set car_profile.roof=1``).
     The sequence-level consensus of parked cars (:class:`ConsensusConfig`, not in the paper)
     runs after the targets in both presets (``--set consensus.enabled=false``).
     """

@@ -113,21 +113,30 @@ class LaneBoxes:
 
 
 def box_corners(boxes: LaneBoxes, shorten: float = 0.0, raise_bottom: float = 0.0,
-                narrow: float = 0.0) -> list[tuple]:
+                narrow: float = 0.0, keep_length: float = 1.0, keep_height: float = 1.0) -> list[tuple]:
     """The 8 corners of gathered ``boxes``.
 
     ``shorten``, ``narrow`` and ``raise_bottom`` (metres) give the corners of a part of each box
     instead: ``shorten`` off each end along the length, ``narrow`` off each side along the
     width, the bottom face raised by ``raise_bottom`` (the optimisation frame's y points down),
-    each capped at :data:`MAX_PART_FRACTION` of the extent.
+    each capped at :data:`MAX_PART_FRACTION` of the extent. ``keep_length`` (fraction, centred)
+    keeps that share of the length, ``keep_height`` lowers the top face to that fraction of the
+    height above the box's bottom; the bottom is raised by at most :data:`MAX_PART_FRACTION` of
+    the height, so a part keeps ``keep_height - MAX_PART_FRACTION`` of it at least.
     """
     centre, half = list(boxes.centre), list(boxes.half)
     if shorten > 0:
         half[2] = half[2] - dr.minimum(shorten, 2.0 * MAX_PART_FRACTION * half[2])
+    if keep_length < 1.0:
+        half[2] = half[2] * keep_length
     if narrow > 0:
         half[0] = half[0] - dr.minimum(narrow, 2.0 * MAX_PART_FRACTION * half[0])
+    if keep_height < 1.0:
+        drop = (1.0 - keep_height) * half[1]  # half of the top's drop: the centre moves down by it
+        half[1] = half[1] - drop
+        centre[1] = centre[1] + drop
     if raise_bottom > 0:
-        lift = 0.5 * dr.minimum(raise_bottom, 2.0 * MAX_PART_FRACTION * half[1])
+        lift = 0.5 * dr.minimum(raise_bottom, 2.0 * MAX_PART_FRACTION * boxes.half[1])
         half[1] = half[1] - lift
         centre[1] = centre[1] - lift
     c, s = boxes.cos, boxes.sin
@@ -153,22 +162,31 @@ def projected_boxes(dec: DecodedBoxes, lanes: ProjectionLanes, profile: CarProfi
     narrower on each side than the box, which holds the mirrors) above
     ``profile.clearance`` over the full length, its plan's corners cut by ``profile.corner``
     (two crossed boxes, one ``corner`` narrower on each side, one ``corner`` shorter at each
-    end), and the full height over the length less ``profile.overhang`` at each end, where the
-    wheels meet the ground (see :class:`~vsrd_mi.optimise.config.CarProfile`). A car's mask box is the projection of the
+    end), and a part reaching the ground over the length less ``profile.overhang`` at each end,
+    where the wheels meet it; with ``profile.roof < 1`` these parts end at ``profile.waist`` of the
+    height and a roof part (``profile.roof`` of the length, centred) reaches the box's top (see
+    :class:`~vsrd_mi.optimise.config.CarProfile`). A car's mask box is the projection of the
     car, not of its box: the box's bottom corners at the ends enclose empty space under the
-    bumpers, which project below the mask in every view that sees an end of the car.
+    bumpers, which project below the mask in every view that sees an end of the car, and its top
+    corners at the ends enclose the space over the bonnet and the boot or bed.
     """
     boxes = LaneBoxes.gather(dec, lanes.box, lanes.dt)  # once: every part is built from it
     if profile is None or not profile.enabled:
         return _footprint(box_corners(boxes), lanes)
     body = profile.mirror  # the box holds the mirrors, the body is that much narrower per side
+    waist = profile.waist if profile.roof < 1.0 else 1.0  # outside the roof the body ends lower
     if profile.corner > 0:  # the body's plan: an octagon, the union of two crossed boxes
-        parts = [box_corners(boxes, raise_bottom=profile.clearance, narrow=body + profile.corner),
-                 box_corners(boxes, raise_bottom=profile.clearance, shorten=profile.corner, narrow=body)]
+        parts = [box_corners(boxes, raise_bottom=profile.clearance, narrow=body + profile.corner,
+                             keep_height=waist),
+                 box_corners(boxes, raise_bottom=profile.clearance, shorten=profile.corner, narrow=body,
+                             keep_height=waist)]
     else:
-        parts = [box_corners(boxes, raise_bottom=profile.clearance, narrow=body)]
+        parts = [box_corners(boxes, raise_bottom=profile.clearance, narrow=body, keep_height=waist)]
     if profile.clearance > 0:  # below the bumpers only the wheels, between the overhangs
-        parts.append(box_corners(boxes, shorten=profile.overhang, narrow=body))
+        parts.append(box_corners(boxes, shorten=profile.overhang, narrow=body, keep_height=waist))
+    if profile.roof < 1.0:  # the full height only over the roof, centred on the box
+        parts.append(box_corners(boxes, raise_bottom=profile.clearance, narrow=body + profile.corner,
+                                 keep_length=profile.roof))
     x1, y1, x2, y2, valid = _footprint(parts[0], lanes)
     for corners in parts[1:]:
         p = _footprint(corners, lanes)
