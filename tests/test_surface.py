@@ -91,3 +91,15 @@ def test_range_quantile_is_the_faces_quantile_of_offset_plus_noise():
     for r, want in zip(ranges, q):
         a = a_ref * (r / 10.0) ** 2
         assert np.mean(offsets + a * normal < 0) == pytest.approx(want, abs=0.01), r
+
+
+def test_range_quantile_floor_holds_only_where_the_model_falls_below_it():
+    """With ``floor`` = the reference quantile, nearer points keep it (the model's 0.03 at 5 m
+    would sit on stereo outliers) and further ones follow the model unchanged."""
+    ranges = np.array([2.0, 5.0, 10.0, 20.0, 40.0])
+    free = range_quantile(ranges, 0.1, 10.0)
+    floored = range_quantile(ranges, 0.1, 10.0, floor=0.1)
+    assert free[1] < 0.05
+    np.testing.assert_allclose(floored[:3], 0.1, atol=1e-9)
+    np.testing.assert_array_equal(floored[3:], free[3:])
+    np.testing.assert_array_equal(range_quantile(ranges, 0.5, 10.0, floor=0.1), 0.5)

@@ -92,7 +92,7 @@ def _face_quantile(a):
     return 0.5 * (1.0 - erfcx(np.asarray(a, dtype=np.float64) / math.sqrt(2.0)))
 
 
-def range_quantile(ranges, quantile: float, reference_range: float) -> np.ndarray:
+def range_quantile(ranges, quantile: float, reference_range: float, floor: float = 0.0) -> np.ndarray:
     """Per point, the quantile of the depths at which the face its ray enters lies, for points at
     ``ranges`` (m), given that it is ``quantile`` at ``reference_range``.
 
@@ -103,10 +103,12 @@ def range_quantile(ranges, quantile: float, reference_range: float) -> np.ndarra
     depths, ``a = sigma / mu``: near 0 where the noise is small against the offsets, towards 0.5
     (the median) where it dwarfs them. ``quantile`` at ``reference_range`` fixes ``a`` there, and
     ``a`` grows as ``(range / reference_range)^2``. A ``quantile`` of 0.5 or more is returned
-    unchanged at every range.
+    unchanged at every range. No point's quantile is below ``floor``: the model has no outliers,
+    but stereo mismatches (mixed pixels at a mask's edge, an occluder's disparity) are a share of
+    every cloud, and a face at a quantile below their share sits on them.
     """
     ranges = np.asarray(ranges, dtype=np.float64)
     if quantile >= 0.5:
         return np.full(ranges.shape, float(quantile))
     a_ref = brentq(lambda a: float(_face_quantile(a)) - quantile, 0.0, 1e3)
-    return _face_quantile(a_ref * (np.maximum(ranges, MIN_RANGE) / reference_range) ** 2)
+    return np.maximum(_face_quantile(a_ref * (np.maximum(ranges, MIN_RANGE) / reference_range) ** 2), floor)

@@ -488,7 +488,8 @@ def fit_footprint(points: np.ndarray, yaw: float, cameras: np.ndarray,
     if cfg.refine:
         quantile = cfg.fit_quantile if quantile is None else quantile
         if cfg.quantile_by_range:  # the faces' quantile of each point's depth at its range
-            quantile = range_quantile(np.linalg.norm(local - cam_local, axis=1), quantile, cfg.reference_range)
+            quantile = range_quantile(np.linalg.norm(local - cam_local, axis=1), quantile, cfg.reference_range,
+                                      floor=cfg.min_quantile)
 
         def residuals(c: np.ndarray) -> np.ndarray:
             # sum f^2 = 2 scale sum quantile_soft_l1(r): least squares on the signed root

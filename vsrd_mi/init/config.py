@@ -224,6 +224,11 @@ class FootprintConfig:
     #: the square of the range and, far away, dwarfs how far the body lies behind the box's
     #: faces, so the faces move from a low quantile of the depths towards their median).
     quantile_by_range: bool = True
+    #: No point's quantile falls below this nearer than ``reference_range``
+    #: (:func:`vsrd_mi.geometry.surface.range_quantile`'s ``floor``): there the model's quantile
+    #: drops towards 0 (0.03 at 5 m) and the faces went onto the clouds' stereo outliers, in front
+    #: of the cars (docs/accuracy.md). The optimisation's ``SurfaceConfig.min_quantile`` is the same.
+    min_quantile: float = 0.1
     #: A refinement moving the centre further than this (m, about a car length) from its initial
     #: value is rejected as diverged. Far cars need shifts of ~2 m: their edge percentiles sit
     #: well in front of the surface (depth noise ~0.8 m at 33 m on KITTI-360).

@@ -269,6 +269,8 @@ class SurfaceConfig:
     #: ``quantile`` holds at ``reference_range``; each point's own follows its range
     #: (:func:`vsrd_mi.geometry.surface.range_quantile`), as the initialisation's footprint fit's.
     quantile_by_range: bool = True
+    #: No point's quantile falls below this (the initialisation's ``FootprintConfig.min_quantile``).
+    min_quantile: float = 0.1
 
     def __post_init__(self) -> None:
         if self.scale <= 0 or self.reference_range <= 0 or self.max_points < 1 or not 0 < self.quantile < 1:

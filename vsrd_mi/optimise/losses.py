@@ -354,15 +354,15 @@ class VisibleSurface:
     without points (weight 0). At most ``max_points`` per box are kept (a fixed random subset,
     drawn for box ``n`` with the seed ``(seed, n)``, so that it does not depend on the other
     boxes). With ``by_range`` each point weighs the quantile of its own horizontal range
-    (:func:`vsrd_mi.geometry.surface.range_quantile`, ``quantile`` at ``reference_range``) instead
-    of ``quantile`` itself.
+    (:func:`vsrd_mi.geometry.surface.range_quantile`, ``quantile`` at ``reference_range``, at
+    least ``min_quantile``) instead of ``quantile`` itself.
     """
 
     DRJIT_STRUCT = {"box": object, "w": object, "points": object, "cameras": object, "quantile": object}
 
     def __init__(self, points: list, cameras: list, weights: np.ndarray, scale: float,
                  reference_range: float, max_points: int, quantile: float, seed: int = 0,
-                 by_range: bool = False):
+                 by_range: bool = False, min_quantile: float = 0.0):
         self.count = len(points)
         self.quantile = float(quantile)
         self.scale, self.reference_range = float(scale), float(reference_range)
@@ -389,7 +389,8 @@ class VisibleSurface:
             self.cameras = (to_float(cams[:, 0]), to_float(cams[:, 2]))
             if by_range:  # per point, the faces' quantile at its range (horizontal, as the residuals')
                 ranges = np.hypot(pts[:, 0] - cams[:, 0], pts[:, 2] - cams[:, 2])
-                self.quantile = to_float(range_quantile(ranges, self.quantile, self.reference_range))
+                self.quantile = to_float(range_quantile(ranges, self.quantile, self.reference_range,
+                                                        floor=min_quantile))
 
     @property
     def active(self) -> bool:

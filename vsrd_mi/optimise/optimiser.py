@@ -476,7 +476,8 @@ class BoxOptimiser:
         term = losses.VisibleSurface([p for p, _ in points], [c for _, c in points], weights,
                                      sc.scale, sc.reference_range, sc.max_points,
                                      sc.quantile,
-                                     seed=self.cfg.seed, by_range=sc.quantile_by_range)
+                                     seed=self.cfg.seed, by_range=sc.quantile_by_range,
+                                     min_quantile=sc.min_quantile)
         return term if term.active else None
 
     def _box_vector(self) -> np.ndarray:
