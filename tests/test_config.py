@@ -56,6 +56,13 @@ def test_overrides_set_tuple_fields_from_json_lists():
             default_config().with_overrides([f"stereo_init.footprint.typical_size={bad}"])
 
 
+def test_surface_min_quantile_out_of_range_is_refused_naming_it():
+    for bad in ("-0.1", "0.5"):
+        with pytest.raises(ValueError, match="surface.min_quantile must be in"):
+            default_config().with_overrides([f"surface.min_quantile={bad}"])
+    assert default_config().with_overrides(["surface.min_quantile=0"]).surface.min_quantile == 0.0
+
+
 def test_the_residual_field_needs_the_silhouette_term():
     """The residual field acts only through the rendered silhouettes: switching it on without
     their loss is refused with the fix in the message; with it, it is accepted."""

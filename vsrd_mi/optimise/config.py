@@ -277,6 +277,8 @@ class SurfaceConfig:
             raise ValueError(f"surface.scale and surface.reference_range must be > 0, surface.max_points >= 1 "
                              f"and surface.quantile in (0, 1), got {self.scale}, {self.reference_range}, "
                              f"{self.max_points}, {self.quantile}")
+        if not 0.0 <= self.min_quantile < 0.5:  # a floor at or above the median is no floor
+            raise ValueError(f"surface.min_quantile must be in [0, 0.5), got {self.min_quantile}")
 
 
 @dataclass(frozen=True)

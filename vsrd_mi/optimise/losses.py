@@ -164,7 +164,8 @@ def projected_boxes(dec: DecodedBoxes, lanes: ProjectionLanes, profile: CarProfi
     (two crossed boxes, one ``corner`` narrower on each side, one ``corner`` shorter at each
     end), and a part reaching the ground over the length less ``profile.overhang`` at each end,
     where the wheels meet it; with ``profile.roof < 1`` these parts end at ``profile.waist`` of the
-    height and a roof part (``profile.roof`` of the length, centred) reaches the box's top (see
+    height and a roof part (``profile.roof`` of the length, centred, as narrow as the octagon's
+    cut ends so that it lies inside the body's plan) reaches the box's top (see
     :class:`~vsrd_mi.optimise.config.CarProfile`). A car's mask box is the projection of the
     car, not of its box: the box's bottom corners at the ends enclose empty space under the
     bumpers, which project below the mask in every view that sees an end of the car, and its top
