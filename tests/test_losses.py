@@ -485,49 +485,6 @@ def test_init_loss_is_the_l1_sum_per_box():
     assert got == pytest.approx((0.1 * 1.75 + 20.0 * (2.125 + 0.2)) / 2, abs=1e-3)
 
 
-def nearest_face_distance(centre, size, yaw, u):
-    """Independent check: the smallest projection onto the unit direction u = (ux, uz) of the
-    footprint's four corners (heading (sin yaw, cos yaw), width across it)."""
-    heading = np.array([np.sin(yaw), np.cos(yaw)])
-    side = np.array([np.cos(yaw), -np.sin(yaw)])
-    corners = [np.array([centre[0], centre[2]]) + a * size[0] / 2 * side + b * size[2] / 2 * heading
-               for a in (-1, 1) for b in (-1, 1)]
-    return min(float(c @ u) for c in corners)
-
-
-def test_face_anchor_holds_the_near_face_along_the_line_of_sight():
-    c_init = np.array([[4.0, 0.8, 20.0], [-6.0, 0.7, 12.0]])
-    size_init = np.array([[1.8, 1.5, 4.0], [1.7, 1.4, 3.6]])
-    yaw_init = np.array([0.4, -1.2])
-    u = c_init[:, [0, 2]] / np.linalg.norm(c_init[:, [0, 2]], axis=1, keepdims=True)
-    # grown boxes whose near faces (and transverse positions) are the initial ones: zero loss
-    size = size_init + np.array([[0.2, 0.1, 0.6], [0.3, 0.0, 1.1]])
-    yaw = yaw_init + np.array([0.1, -0.05])
-    centres = c_init.copy()
-    for n in range(2):
-        d0 = nearest_face_distance(c_init[n], size_init[n], yaw_init[n], u[n])
-        d = nearest_face_distance(c_init[n], size[n], yaw[n], u[n])
-        centres[n, [0, 2]] += u[n] * (d0 - d)
-        assert nearest_face_distance(centres[n], size[n], yaw[n], u[n]) == pytest.approx(d0)
-    dec = field_of(centres, size, yaw).decode()
-    anchor = losses.InitAnchor(c_init, None, None, faces=(size_init, yaw_init))
-    assert values(anchor.loss(dec))[0] == pytest.approx(0.0, abs=1e-4)
-    # the centre anchor charges the same boxes for the centre's move
-    centre_only = values(losses.InitAnchor(c_init, None, None).loss(dec))[0]
-    assert centre_only == pytest.approx(np.abs(centres - c_init).sum() / 2, rel=1e-4)
-    assert centre_only > 0.1
-    # a box left at its initial centre pays for its near face's move: |d - d0| split on x and z
-    dec = field_of(c_init, size, yaw).decode()
-    got = values(losses.InitAnchor(c_init, None, None, faces=(size_init, yaw_init)).loss(dec))[0]
-    moves = [nearest_face_distance(c_init[n], size_init[n], yaw_init[n], u[n])
-             - nearest_face_distance(c_init[n], size[n], yaw[n], u[n]) for n in range(2)]
-    assert got == pytest.approx(sum(abs(m) * np.abs(u[n]).sum() for n, m in enumerate(moves)) / 2, rel=1e-4)
-    # boxes not selected keep the centre anchor
-    got = values(losses.InitAnchor(c_init, None, None, faces=(size_init, yaw_init, np.array([False, True])))
-                 .loss(dec))[0]
-    assert got == pytest.approx(abs(moves[1]) * np.abs(u[1]).sum() / 2, rel=1e-4)
-
-
 def test_shape_prior_is_size_l1_plus_yaw_sin_squared_per_box():
     sizes = np.array([[1.9, 1.5, 4.3], [1.7, 1.4, 3.9]])
     field = field_of(np.array([[0.5, 0.2, 10.0], [-3.0, 0.4, 16.0]]), sizes, np.array([0.3, -1.0]))

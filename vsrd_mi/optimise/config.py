@@ -54,11 +54,6 @@ class LossWeights:
     #: moving cars of the development seeds 0.816 / 0.833 / 0.828 mean 3D IoU, and 5 raised the
     #: validation seeds' from 0.672 to 0.716 (docs/accuracy.md).
     init_dynamic: float = 5.0
-    #: What the init anchor holds of a parked box along the line of sight: its initial centre
-    #: (False) or its face nearest the target camera (True; :class:`vsrd_mi.optimise.losses.InitAnchor`).
-    init_face: bool = False
-    #: ``init_face`` of moving boxes.
-    init_face_dynamic: bool = False
     #: Size prior (not in the paper; on in the ``paper`` preset, off in the default): L1 distance
     #: (m) of each box's size from its initial size. The projection loss hardly sees some
     #: directions of a box (the length of a car seen end-on, the yaw / length trade-off of a car

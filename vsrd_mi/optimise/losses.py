@@ -247,66 +247,29 @@ def silhouette_loss(labels: list, targets: list, eps: float) -> mi.Float:
     return total / max(len(labels), 1)
 
 
-def footprint_support(half_w, half_l, cos, sin, ux, uz):
-    """Half extent of a box's footprint along the horizontal unit direction ``(ux, uz)``: the
-    distance from its centre to its nearest face along that direction (heading
-    ``(sin yaw, 0, cos yaw)``; NumPy or Dr.Jit arrays)."""
-    return half_w * abs(cos * ux - sin * uz) + half_l * abs(sin * ux + cos * uz)
-
-
 class InitAnchor:
     """The init regulariser's constants as Dr.Jit arrays, converted once per optimisation:
     initial centres ``centre_init`` (N, 3), velocities ``velocity_init`` (N, 3) or None (no
     velocity term), the mask of boxes whose velocity counts ``velocity_mask`` (N,) and weights
-    ``box_weights`` (N,) or None (all 1). :meth:`loss` is :func:`init_loss`.
+    ``box_weights`` (N,) or None (all 1). :meth:`loss` is :func:`init_loss`."""
 
-    With ``faces`` (the initial boxes' sizes (N, 3) ``(w, h, l)``, yaws (N,) and optionally which
-    boxes (N,) bool, default all) the anchor holds
-    each box's face nearest the target camera (the optimisation frame's origin) along the line of
-    sight to its initial centre, not the centre: the stereo cloud measured that face, while the
-    initial centre lies half an assumed size behind it. The horizontal target is then
-    ``l_init + u (s - s_init)``, ``u`` the unit direction to the initial centre and ``s`` the
-    box's :func:`footprint_support` along it, so that a box growing from its initial size grows
-    away from the camera (docs/accuracy.md, "The anchor holds the seen face").
-    """
-
-    DRJIT_STRUCT = {"centre": list, "w": mi.Float, "velocity": object, "mask": object, "sight": object}
+    DRJIT_STRUCT = {"centre": list, "w": mi.Float, "velocity": object, "mask": object}
 
     def __init__(self, centre_init: np.ndarray, velocity_init: np.ndarray | None,
-                 velocity_mask: np.ndarray | None, box_weights: np.ndarray | None = None,
-                 faces: tuple | None = None):
+                 velocity_mask: np.ndarray | None, box_weights: np.ndarray | None = None):
         n = self.count = len(centre_init)
-        centre_init = np.asarray(centre_init, dtype=np.float64)
-        self.centre = [to_float(centre_init[:, j]) for j in range(3)]
+        self.centre = [to_float(np.asarray(centre_init)[:, j]) for j in range(3)]
         self.w = to_float(np.ones(n) if box_weights is None else box_weights)
         self.velocity = self.mask = None
         if velocity_init is not None:
             self.velocity = [to_float(np.asarray(velocity_init)[:, j]) for j in range(3)]
             self.mask = to_float(np.ones(n) if velocity_mask is None else velocity_mask)
-        self.sight = None
-        if faces is not None:
-            size, yaw = np.asarray(faces[0], dtype=np.float64), np.asarray(faces[1], dtype=np.float64)
-            held = np.ones(n, dtype=bool) if len(faces) < 3 else np.asarray(faces[2], dtype=bool)
-            ground = np.hypot(centre_init[:, 0], centre_init[:, 2])
-            if np.any((ground <= 0) & held):
-                raise ValueError("InitAnchor: a face anchor needs initial centres off the camera's vertical axis")
-            ground = np.where(held, ground, 1.0)
-            ux, uz = centre_init[:, 0] / ground * held, centre_init[:, 2] / ground * held
-            s0 = footprint_support(size[:, 0] / 2, size[:, 2] / 2, np.cos(yaw), np.sin(yaw), ux, uz)
-            self.sight = (to_float(ux), to_float(uz), to_float(s0))
 
     def loss(self, dec: DecodedBoxes) -> mi.Float:
-        """``sum_n w_n (|l_n - t_n|_1 + m_n |v_n - v_init|_1) / N``, ``t_n`` the initial centre or,
-        with ``faces``, the centre that keeps the initial near face."""
-        target = list(self.centre)
-        if self.sight is not None:
-            ux, uz, s0 = self.sight
-            shift = footprint_support(dec.half[0], dec.half[2], dec.cos, dec.sin, ux, uz) - s0
-            target[0] = target[0] + ux * shift
-            target[2] = target[2] + uz * shift
+        """``sum_n w_n (|l_n - l_init|_1 + m_n |v_n - v_init|_1) / N``."""
         per_box = dr.zeros(mi.Float, self.count)
         for j in range(3):
-            per_box = per_box + dr.abs(dec.centre[j] - target[j])
+            per_box = per_box + dr.abs(dec.centre[j] - self.centre[j])
             if self.velocity is not None:
                 per_box = per_box + self.mask * dr.abs(dec.velocity[j] - self.velocity[j])
         return dr.sum(self.w * per_box) / max(self.count, 1)

@@ -372,15 +372,10 @@ class BoxOptimiser:
         init_weights = np.where(self.dynamic, w.init_dynamic, w.init)
         if self.init_boxes is not None:
             if np.any(init_weights > 0):
-                faces = None
-                if w.init_face or w.init_face_dynamic:
-                    faces = (np.stack([b.size for b in self.init_boxes]),
-                             np.array([b.yaw for b in self.init_boxes]),
-                             np.where(self.dynamic, w.init_face_dynamic, w.init_face))
                 anchor = losses.InitAnchor(np.stack([b.centre for b in self.init_boxes]),
                                            np.stack([b.velocity for b in self.init_boxes])
                                            if velocity else None,
-                                           self.dynamic, init_weights, faces)
+                                           self.dynamic, init_weights)
             prior = losses.ShapePrior(np.stack([b.size for b in self.init_boxes]),
                                       np.array([b.yaw for b in self.init_boxes]),
                                       np.where(self.dynamic, w.init_size_dynamic, w.init_size),
