@@ -304,6 +304,13 @@ def test_suites_are_disjoint_and_deterministic():
         [SET_SEQUENCE_BASE["development"] + k for k in range(len(SCENARIOS))]
     assert [m.scenario.frames for m in select(val, "long")] == [200]
     assert len({m.fingerprint() for m in dev + val}) == len(dev) + len(val)
+    # the extra development streets: moving traffic only, seeds and numbers of their own, no long one
+    traffic = suite("development-traffic")
+    assert {m.scenario.name for m in traffic} == {"moving_traffic"} and all(m.default for m in traffic)
+    seeds = [set(v) for v in SET_SEEDS.values()]
+    assert sum(len(x) for x in seeds) == len(set().union(*seeds))
+    numbers = [{m.sequence for m in suite(name)} for name in SET_SEEDS]
+    assert sum(len(x) for x in numbers) == len(set().union(*numbers))
     with pytest.raises(ValueError, match="known"):
         select(dev, "nope")
     with pytest.raises(ValueError, match="development"):

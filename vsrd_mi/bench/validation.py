@@ -1,8 +1,9 @@
-"""Accuracy on a synthetic set: ``vsrd-mi bench validation [--set validation|development]``.
+"""Accuracy on a synthetic set: ``vsrd-mi bench validation [--set validation|development|development-traffic]``.
 
 The sets of :mod:`vsrd_mi.synth.suites` (six hard streets each: mixed classes parked every way,
 angled and perpendicular bays, tight rows with occlusion, moving traffic, wide and tall vehicles;
-the development set is for tuning, the validation set only for reporting) are generated once under
+the development set is for tuning, the validation set only for reporting; ``development-traffic``
+adds four development streets of moving traffic) are generated once under
 ``--root`` and autolabelled with the default configuration (or ``--config`` / ``--set``): per
 sequence the ``--targets`` middle target frames, in one ``vsrd-mi autolabel`` run each (so the
 consensus of parked cars fuses over them), ``--jobs`` sequences at a time. Every labelled frame is
@@ -138,7 +139,10 @@ def run(set_name: str, root: Path, work: Path, targets: int, jobs: int, extra: l
 def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser("validation", help="accuracy on the synthetic validation (or development) set",
                               description=__doc__.split("\n\n")[0])
-    p.add_argument("--set", dest="set_name", choices=("validation", "development"), default="validation")
+    p.add_argument("--set", dest="set_name", choices=("validation", "development", "development-traffic"),
+                   default="validation",
+                   help="validation (report only), development (tune on it) or development-traffic "
+                        "(four more development streets with moving traffic)")
     p.add_argument("--root", type=Path, help="where the set is generated (default runs/bench-data/<set>)")
     p.add_argument("--work", type=Path, help="autolabel output (default runs/bench-<set>)")
     p.add_argument("--targets", type=int, default=4, help="middle target frames per sequence (0 = all)")

@@ -16,7 +16,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                             "root, one sequence per preset)",
         description="Write every preset of a set as a sequence of one KITTI-360 root (development "
                     "sequences 100-105, validation 200-205; 'long', 109 / 209, only with --only "
-                    "long). Tune on development, report validation. A sequence whose manifest "
+                    "long; development-traffic: four more moving-traffic streets, 110-113). Tune "
+                    "on development, report validation. A sequence whose manifest "
                     "entry (OUT/suite.json) matches and whose files are complete is kept.")
     p.add_argument("out", help="dataset root to write (created if missing)")
     p.add_argument("--set", required=True, choices=sorted(SET_SEEDS), dest="set_name",

@@ -32,13 +32,14 @@ from .generate import generate_sequence
 from .vehicles import ALL_MESHES, VEHICLE_CLASSES
 
 #: Sequence number of a set's first preset (the i-th preset is base + i, ``long`` is base + 9).
-SET_SEQUENCE_BASE = {"development": 100, "validation": 200}
+SET_SEQUENCE_BASE = {"development": 100, "validation": 200, "development-traffic": 110}
 #: Sequence number offset of the ``long`` preset within its set.
 LONG_OFFSET = 9
 #: Seeds of each set, one per preset in :data:`SCENARIOS` order, then the ``long`` preset's.
 #: The two lists share no seed (a test checks it).
 SET_SEEDS = {"development": (1301, 1302, 1303, 1304, 1305, 1306, 1309),
-             "validation": (7741, 7742, 7743, 7744, 7745, 7746, 7749)}
+             "validation": (7741, 7742, 7743, 7744, 7745, 7746, 7749),
+             "development-traffic": (1311, 1312, 1313, 1314)}
 
 #: Every procedural class once and every mesh file once per deck.
 EVEN_MIX: tuple[tuple[str, int], ...] = tuple((c.name, 1) for c in VEHICLE_CLASSES) + \
@@ -119,6 +120,13 @@ def _scenarios() -> tuple[Scenario, ...]:
 
 #: The presets of each set, in sequence-number order.
 SCENARIOS: tuple[Scenario, ...] = _scenarios()
+#: More development streets with moving traffic: the development and validation sets hold one
+#: each (about eight moving cars per set), too few to tune moving cars on. Development only: the
+#: validation set stays as it is, so its figures remain comparable.
+TRAFFIC_SCENARIOS: tuple[Scenario, ...] = tuple(s for s in SCENARIOS if s.name == "moving_traffic") * 4
+#: The presets of each set (a set's seeds pair with them in order).
+SET_SCENARIOS = {"development": SCENARIOS, "validation": SCENARIOS,
+                 "development-traffic": TRAFFIC_SCENARIOS}
 #: The 200-frame preset for a whole-sequence throughput figure (not written by default).
 LONG = Scenario("long", "200 frames of a parked-heavy street with moving traffic (throughput)",
                 200, 160, 4, hard_config(replace(ParkingConfig(), parallel_reverse_prob=0.5,
@@ -145,13 +153,16 @@ class SuiteMember:
 
 
 def suite(name: str) -> list[SuiteMember]:
-    """The members of set ``name`` ("development" or "validation"), ``long`` last."""
+    """The members of set ``name`` (a key of :data:`SET_SEEDS`); the development and validation
+    sets end with ``long``."""
     if name not in SET_SEEDS:
         raise ValueError(f"unknown set {name!r} (known: {', '.join(SET_SEEDS)})")
-    seeds, base = SET_SEEDS[name], SET_SEQUENCE_BASE[name]
+    seeds, base, scenarios = SET_SEEDS[name], SET_SEQUENCE_BASE[name], SET_SCENARIOS[name]
     members = [SuiteMember(s, seed, base + k, True)
-               for k, (s, seed) in enumerate(zip(SCENARIOS, seeds))]
-    return members + [SuiteMember(LONG, seeds[-1], base + LONG_OFFSET, False)]
+               for k, (s, seed) in enumerate(zip(scenarios, seeds))]
+    if len(seeds) > len(scenarios):  # the seed after the presets' is the long street's
+        members.append(SuiteMember(LONG, seeds[-1], base + LONG_OFFSET, False))
+    return members
 
 
 def select(members: list[SuiteMember], only: str | None) -> list[SuiteMember]:
@@ -225,5 +236,5 @@ def write_suite(root: str | Path, set_name: str, only: str | None = None, force:
     return out
 
 
-__all__ = ["MANIFEST", "SUITE_FORMAT", "read_manifest", "write_suite", "CAMERA_PITCH_DEG", "CAMERA_ROLL_DEG", "LONG", "SCENARIOS", "SET_SEEDS",
-           "SET_SEQUENCE_BASE", "Scenario", "SuiteMember", "hard_config", "select", "suite"]
+__all__ = ["MANIFEST", "SUITE_FORMAT", "read_manifest", "write_suite", "CAMERA_PITCH_DEG", "CAMERA_ROLL_DEG", "LONG", "SCENARIOS", "SET_SCENARIOS", "SET_SEEDS",
+           "SET_SEQUENCE_BASE", "TRAFFIC_SCENARIOS", "Scenario", "SuiteMember", "hard_config", "select", "suite"]
