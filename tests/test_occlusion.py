@@ -12,12 +12,12 @@ import mitsuba as mi
 
 from vsrd_plugins import box_properties
 from vsrd_plugins.sdf import InstanceField
-from vsrd_mi.data.masks import occluder_map, open_sides
+from vsrd_mi.data.masks import BEHIND_MARGIN_PX, lowest_rows, occluder_map, open_sides
 from vsrd_mi.optimise import losses
 
 K = np.array([[500.0, 0.0, 320.0], [0.0, 500.0, 240.0], [0.0, 0.0, 1.0]])
 BOUNDS = np.array([-0.5, -0.5, 639.5, 479.5])
-CAR, OTHER_CAR, ROAD, POLE, BUILDING = 26001, 26002, 7, 17, 11
+CAR, OTHER_CAR, ROAD, POLE, BUILDING, VEGETATION, PERSON, SIGN = 26001, 26002, 7, 17, 11, 21, 24001, 20001
 
 
 def instance_map() -> np.ndarray:
@@ -45,6 +45,39 @@ def test_poles_open_a_side_but_buildings_do_not():
     m = instance_map()
     m[20:40, 70:75] = BUILDING              # behind the car: no occluder
     assert not open_sides(m == CAR, occluder_map(m)).any()
+
+
+def test_things_standing_behind_a_car_leave_its_sides_closed():
+    """A car further down the street borders a nearer car's roof in the image: its lowest visible
+    row lies above the nearer car's, so it stands behind it and the roof stays a constraint."""
+    m = instance_map()                      # CAR: rows 20-39
+    m[14:20, 20:80] = OTHER_CAR             # further away: lowest row 19, 20 rows above the car's
+    lowest = lowest_rows(m)
+    assert lowest[:, 15, 25].tolist() == [19, 19] and lowest[:, 30, 40].tolist() == [39, 39]
+    assert lowest[:, 0, 0].tolist() == [m.shape[0]] * 2
+    assert open_sides(m == CAR, occluder_map(m)).tolist() == [False, True, False, False]  # unordered
+    assert not open_sides(m == CAR, occluder_map(m), lowest).any()
+    # the other car reaching down to the car's bottom row (within the margin) beside its right
+    # end may stand in front of it: the right side opens, and the roof it borders too
+    m[20:40 - BEHIND_MARGIN_PX, 70:80] = OTHER_CAR
+    assert open_sides(m == CAR, occluder_map(m), lowest_rows(m)).tolist() == [False, True, True, False]
+    # a sign in front: its pole reaches below the car's bottom, its board hangs over the roof
+    m = instance_map()
+    m[12:20, 40:60] = SIGN                  # the board, over the roof (its columns end at row 19)
+    m[20:50, 49:51] = SIGN                  # the pole, in front of the car down to the ground
+    assert open_sides(m == CAR, occluder_map(m), lowest_rows(m))[1]
+    # a person in front (feet below the car's bottom) opens the side it covers; one behind does not
+    m = instance_map()
+    m[10:45, 25:30] = PERSON
+    assert open_sides(m == CAR, occluder_map(m), lowest_rows(m)).tolist() == [True, False, False, False]
+    m = instance_map()
+    m[5:20, 25:32] = PERSON                 # above the roof line: its legs hidden by the car
+    m[20:30, 25:30] = PERSON
+    assert not open_sides(m == CAR, occluder_map(m), lowest_rows(m)).any()
+    # stuff is not ordered: a tree crown above the roof still opens it
+    m = instance_map()
+    m[10:20, 20:80] = VEGETATION
+    assert open_sides(m == CAR, occluder_map(m), lowest_rows(m)).tolist() == [False, True, False, False]
 
 
 def test_the_image_edge_opens_a_truncated_side():

@@ -27,6 +27,10 @@ OPEN_SIDE_FRACTION = 0.25
 #: beyond each of them (in the side's direction) an occluder is looked for.
 SIDE_BAND_PX = 2
 SIDE_REACH_PX = 2
+#: An instance whose lowest visible row is more than this many pixels above a car's stands behind
+#: the car (:func:`lowest_rows`): about 1.5 m further at 20 m range on KITTI-360's rig (the bottom
+#: row of a car 20 m away lies ~43 px below the horizon, 4 px less 2 m further away).
+BEHIND_MARGIN_PX = 3
 
 
 def car_values(instance_map: np.ndarray) -> np.ndarray:
@@ -85,15 +89,47 @@ def occluder_map(instance_map: np.ndarray) -> np.ndarray:
     return np.isin(labels, OCCLUDING_LABEL_IDS)
 
 
-def open_sides(mask: np.ndarray, occluders: np.ndarray) -> np.ndarray:
+def lowest_rows(instance_map: np.ndarray) -> np.ndarray:
+    """``(2, H, W)``: per pixel, the lowest image row (largest y) of the thing instance it belongs
+    to (values ``label * 1000 + id``) in the pixel's column (``[0]``) and over the whole instance
+    (``[1]``); the image height ``H`` for stuff and unlabelled pixels, which are not ordered.
+
+    Things stand on the ground, which a camera above it sees rising towards the horizon: of two
+    things that meet in the image, the one whose bottom is higher stands further away, unless its
+    bottom is hidden by something nearer. :func:`open_sides` takes a thing for one standing behind
+    a car only where both rows say so: the column's, since a car in an angled row reaches nearer
+    the camera at its front end than its neighbour's nearest corner does, though its own nearest
+    corner lies further; and the whole instance's, since a sign's board hangs beside its pole.
+    """
+    instance_map = np.asarray(instance_map)
+    H, W = instance_map.shape
+    out = np.full((2, H, W), H, dtype=np.int32)
+    ys, xs = np.nonzero(instance_map >= INSTANCE_FACTOR)
+    if ys.size == 0:
+        return out
+    _, index = np.unique(instance_map[ys, xs], return_inverse=True)
+    column = np.full((int(index.max()) + 1, W), -1, dtype=np.int32)
+    np.maximum.at(column, (index, xs), ys.astype(np.int32))
+    out[0, ys, xs] = column[index, xs]
+    out[1, ys, xs] = column.max(axis=1)[index]
+    return out
+
+
+def open_sides(mask: np.ndarray, occluders: np.ndarray, lowest: np.ndarray | None = None) -> np.ndarray:
     """Which sides ``(left, top, right, bottom)`` of a mask's tight box may not be the object's.
 
     The mask's outermost pixels on a side (within :data:`SIDE_BAND_PX` of it) are looked past, up to
     :data:`SIDE_REACH_PX` pixels outwards: where the image ends or an occluder (``occluders``, e.g.
     :func:`occluder_map`, the mask's own pixels aside) lies there, the object may go on behind it.
-    A side is open when at least :data:`OPEN_SIDE_FRACTION` of its outermost pixels are. The test
-    is conservative: an occluder behind the car opens a side too, which only drops a constraint.
-    Returns a (4,) bool array (all False for an empty mask).
+    A side is open when at least :data:`OPEN_SIDE_FRACTION` of its outermost pixels are. With
+    ``lowest`` (:func:`lowest_rows` of the same instance map) an occluder pixel stands behind the
+    object and hides nothing where its thing's lowest row in its column lies more than
+    :data:`BEHIND_MARGIN_PX` above the mask's lowest row in the column of the side pixel it was
+    looked for from, and its thing's lowest row overall likewise above the mask's: the row of cars
+    further down a street borders a nearer car's roof in the image.
+    Without it, or for stuff (vegetation, bare poles), the test is conservative: an occluder behind
+    the car opens a side too, which only drops a constraint. Returns a (4,) bool array (all False
+    for an empty mask).
     """
     mask = np.asarray(mask, dtype=bool)
     out = np.zeros(4, dtype=bool)
@@ -102,6 +138,12 @@ def open_sides(mask: np.ndarray, occluders: np.ndarray) -> np.ndarray:
         return out
     H, W = mask.shape
     blocked = np.asarray(occluders, dtype=bool) & ~mask
+    own_lowest = None
+    if lowest is not None:
+        lowest = np.asarray(lowest)
+        own_lowest = np.full(W, -1, dtype=np.int64)
+        np.maximum.at(own_lowest, xs, ys)
+        own_bottom = ys.max()
     bounds = (xs.min(), ys.min(), xs.max(), ys.max())
     # (coordinate array, extreme, outward step along x, along y)
     for k, (coord, extreme, dx, dy) in enumerate(((xs, bounds[0], -1, 0), (ys, bounds[1], 0, -1),
@@ -114,7 +156,12 @@ def open_sides(mask: np.ndarray, occluders: np.ndarray) -> np.ndarray:
             outside = (qx < 0) | (qx >= W) | (qy < 0) | (qy >= H)
             inside = ~outside
             hit |= outside
-            hit[inside] |= blocked[qy[inside], qx[inside]]
+            here = blocked[qy[inside], qx[inside]]
+            if own_lowest is not None:  # not an occluder where it stands clearly behind the object
+                behind = ((lowest[0, qy[inside], qx[inside]] < own_lowest[ex[inside]] - BEHIND_MARGIN_PX)
+                          & (lowest[1, qy[inside], qx[inside]] < own_bottom - BEHIND_MARGIN_PX))
+                here &= ~behind
+            hit[inside] |= here
         out[k] = hit.mean() >= OPEN_SIDE_FRACTION
     return out
 

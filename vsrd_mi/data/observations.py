@@ -19,8 +19,8 @@ import numpy as np
 from ..geometry.boxes import Box3D
 from ..geometry.camera import box_to_2d
 from .kitti360 import Sequence
-from .masks import (SOFT_WEIGHT_SCALE_PX, occluder_map, open_sides, passes_size_filter, soft_weight,
-                    tight_box)
+from .masks import (SOFT_WEIGHT_SCALE_PX, lowest_rows, occluder_map, open_sides, passes_size_filter,
+                    soft_weight, tight_box)
 from .selection import SelectionConfig, TargetSpec
 
 #: World "up" of KITTI-360 (z-up world).
@@ -144,7 +144,7 @@ def load_observations(seq: Sequence, spec: TargetSpec,
     for i, f in enumerate(frames):
         cam_to_opt[i] = T_opt_world @ seq.cam0_to_world(f)
         instance_map = seq.instance_map(f)
-        occluders = occluder_map(instance_map)
+        occluders, lowest = occluder_map(instance_map), lowest_rows(instance_map)
         for n, v in enumerate(ids):
             m = instance_map == v
             masks[i, n] = m
@@ -152,7 +152,7 @@ def load_observations(seq: Sequence, spec: TargetSpec,
             if box is not None:
                 boxes[i, n] = box
                 visible[i, n] = passes_size_filter(m, sel.min_mask_area, sel.min_box_side)
-                sides[i, n] = open_sides(m, occluders)
+                sides[i, n] = open_sides(m, occluders, lowest)
         weights[i] = soft_weight(masks[i], cfg.soft_weight_scale_px)
     return Observations(
         sequence=seq.name, target=spec.target, frames=np.array(frames, dtype=np.int64),
