@@ -35,8 +35,8 @@ from .vehicles import ALL_MESHES, VEHICLE_CLASSES
 SET_SEQUENCE_BASE = {"development": 100, "validation": 200, "development-traffic": 110}
 #: Sequence number offset of the ``long`` preset within its set.
 LONG_OFFSET = 9
-#: Seeds of each set, one per preset in :data:`SCENARIOS` order, then the ``long`` preset's.
-#: The two lists share no seed (a test checks it).
+#: Seeds of each set, one per preset of :data:`SET_SCENARIOS` in order, then (development and
+#: validation) the ``long`` preset's. No two sets share a seed (a test checks it).
 SET_SEEDS = {"development": (1301, 1302, 1303, 1304, 1305, 1306, 1309),
              "validation": (7741, 7742, 7743, 7744, 7745, 7746, 7749),
              "development-traffic": (1311, 1312, 1313, 1314)}
