@@ -61,6 +61,8 @@ def test_surface_min_quantile_out_of_range_is_refused_naming_it():
         with pytest.raises(ValueError, match="surface.min_quantile must be in"):
             default_config().with_overrides([f"surface.min_quantile={bad}"])
     assert default_config().with_overrides(["surface.min_quantile=0"]).surface.min_quantile == 0.0
+    footprint = default_config().with_overrides(["stereo_init.footprint.min_quantile=0"]).stereo_init.footprint
+    assert footprint.min_quantile == 0.0
 
 
 def test_the_residual_field_needs_the_silhouette_term():
@@ -100,6 +102,12 @@ def test_the_stereo_initialisation_is_part_of_the_config():
     ("residual=1", "is not a valid bool value"),
     ("sampling=3", "is not a valid str value"),
     ("weights.init", "expected KEY=VALUE"),
+    ("stereo_init.footprint.fit_quantile=1.5", "footprint.fit_quantile must be in"),
+    ("stereo_init.footprint.min_quantile=0.5", "footprint.min_quantile must be in"),
+    ("stereo_init.footprint.reference_range=0", "footprint.reference_range must be > 0"),
+    ("stereo_init.footprint.max_fit_points=0", "footprint.max_fit_points must be >= 1"),
+    ("stereo_init.footprint.edge_percentile=60", "footprint.edge_percentile must be in"),
+    ("stereo_init.footprint.typical_size=[1.8, 1.5, 7.0]", "footprint.typical_size and footprint.max_size"),
 ])
 def test_bad_overrides_name_the_key(item, message):
     with pytest.raises(ValueError, match=message):

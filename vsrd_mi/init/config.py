@@ -9,6 +9,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+import numpy as np
+
 from ..config_io import dataclass_from_dict
 
 #: Depth sources understood by :func:`vsrd_mi.init.depth.make_depth_source`.
@@ -233,6 +235,28 @@ class FootprintConfig:
     #: value is rejected as diverged. Far cars need shifts of ~2 m: their edge percentiles sit
     #: well in front of the surface (depth noise ~0.8 m at 33 m on KITTI-360).
     max_refine_shift: float = 4.0
+
+    def __post_init__(self) -> None:
+        """Refuse values the fit cannot use, naming the field (``footprint.<field>``)."""
+        sizes = (np.asarray(self.typical_size, dtype=float), np.asarray(self.max_size, dtype=float))
+        if any(s.shape != (3,) or not np.all(s > 0) for s in sizes) or np.any(sizes[0] > sizes[1]):
+            raise ValueError(f"footprint.typical_size and footprint.max_size must be three positive sizes "
+                             f"(w, h, l), the typical ones at most the largest, got {self.typical_size}, "
+                             f"{self.max_size}")
+        checks = (("edge_percentile", 0.0 <= self.edge_percentile < 50.0, "in [0, 50)"),
+                  ("visibility_margin", self.visibility_margin >= 0.0, ">= 0"),
+                  ("aggregate_static_offset", self.aggregate_static_offset >= 0, ">= 0"),
+                  ("aggregate_dynamic_offset", self.aggregate_dynamic_offset >= 0, ">= 0"),
+                  ("max_fit_points", self.max_fit_points >= 1, ">= 1"),
+                  ("fit_loss_scale", self.fit_loss_scale > 0.0, "> 0"),
+                  ("reference_range", self.reference_range > 0.0, "> 0"),
+                  ("fit_quantile", 0.0 < self.fit_quantile < 1.0, "in (0, 1)"),
+                  ("fit_quantile_dynamic", 0.0 < self.fit_quantile_dynamic < 1.0, "in (0, 1)"),
+                  ("min_quantile", 0.0 <= self.min_quantile < 0.5, "in [0, 0.5)"),
+                  ("max_refine_shift", self.max_refine_shift > 0.0, "> 0"))
+        for name, ok, bound in checks:
+            if not ok:
+                raise ValueError(f"footprint.{name} must be {bound}, got {getattr(self, name)}")
 
 
 @dataclass
