@@ -34,7 +34,7 @@ import numpy as np
 from ..data.kitti360 import Sequence, sequence_name
 from ..data.selection import select_targets
 from ..evaluate.sequence import EvalConfig, evaluate_frames, sequence_frames
-from ..synth.suites import select, suite, write_suite
+from ..synth.suites import SET_SEEDS, select, suite, write_suite
 
 #: Issue 33's bounds, each ``(result path, comparison, value)``; sizes are relative biases.
 BOUNDS = {
@@ -139,8 +139,7 @@ def run(set_name: str, root: Path, work: Path, targets: int, jobs: int, extra: l
 def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser("validation", help="accuracy on the synthetic validation (or development) set",
                               description=__doc__.split("\n\n")[0])
-    p.add_argument("--set", dest="set_name", choices=("validation", "development", "development-traffic"),
-                   default="validation",
+    p.add_argument("--set", dest="set_name", choices=sorted(SET_SEEDS), default="validation",
                    help="validation (report only), development (tune on it) or development-traffic "
                         "(four more development streets with moving traffic)")
     p.add_argument("--root", type=Path, help="where the set is generated (default runs/bench-data/<set>)")

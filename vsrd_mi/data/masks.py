@@ -122,7 +122,8 @@ def open_sides(mask: np.ndarray, occluders: np.ndarray, lowest: np.ndarray | Non
     :data:`SIDE_REACH_PX` pixels outwards: where the image ends or an occluder (``occluders``, e.g.
     :func:`occluder_map`, the mask's own pixels aside) lies there, the object may go on behind it.
     A side is open when at least :data:`OPEN_SIDE_FRACTION` of its outermost pixels are. With
-    ``lowest`` (:func:`lowest_rows` of the same instance map) an occluder pixel stands behind the
+    ``lowest`` (:func:`lowest_rows` of the instance map ``mask`` is one instance of, which holds the
+    mask's own lowest rows at its pixels) an occluder pixel stands behind the
     object and hides nothing where its thing's lowest row in its column lies more than
     :data:`BEHIND_MARGIN_PX` above the mask's lowest row in the column of the side pixel it was
     looked for from, and its thing's lowest row overall likewise above the mask's: the row of cars
@@ -138,12 +139,8 @@ def open_sides(mask: np.ndarray, occluders: np.ndarray, lowest: np.ndarray | Non
         return out
     H, W = mask.shape
     blocked = np.asarray(occluders, dtype=bool) & ~mask
-    own_lowest = None
     if lowest is not None:
         lowest = np.asarray(lowest)
-        own_lowest = np.full(W, -1, dtype=np.int64)
-        np.maximum.at(own_lowest, xs, ys)
-        own_bottom = ys.max()
     bounds = (xs.min(), ys.min(), xs.max(), ys.max())
     # (coordinate array, extreme, outward step along x, along y)
     for k, (coord, extreme, dx, dy) in enumerate(((xs, bounds[0], -1, 0), (ys, bounds[1], 0, -1),
@@ -157,10 +154,9 @@ def open_sides(mask: np.ndarray, occluders: np.ndarray, lowest: np.ndarray | Non
             inside = ~outside
             hit |= outside
             here = blocked[qy[inside], qx[inside]]
-            if own_lowest is not None:  # not an occluder where it stands clearly behind the object
-                behind = ((lowest[0, qy[inside], qx[inside]] < own_lowest[ex[inside]] - BEHIND_MARGIN_PX)
-                          & (lowest[1, qy[inside], qx[inside]] < own_bottom - BEHIND_MARGIN_PX))
-                here &= ~behind
+            if lowest is not None:  # not an occluder where it stands clearly behind the object
+                own = lowest[:, ey[inside], ex[inside]]   # the mask's column and overall lowest rows
+                here &= ~np.all(lowest[:, qy[inside], qx[inside]] < own - BEHIND_MARGIN_PX, axis=0)
             hit[inside] |= here
         out[k] = hit.mean() >= OPEN_SIDE_FRACTION
     return out
