@@ -76,7 +76,10 @@ def initial_boxes(seq: Sequence, spec, obs: Observations, cfg: AutolabelConfig):
     # parked cars: the length axis the masks support (axis_seen: the cloud or velocity showed it)
     seen = [inits[int(i)].axis_seen if int(i) in inits else False for i in obs.instance_ids]
     axes = choose_yaws(boxes, obs, cfg.axis, anchor=cfg.weights.init, axis_seen=seen)
-    boxes = [dataclasses.replace(b, yaw=a.yaw) for b, a in zip(boxes, axes)]
+    # a turned box's footprint is fitted again along its new length (centre and size move)
+    boxes = [inits[int(i)].turned(a.yaw, cfg.stereo_init.footprint).to_box()
+             if a.switched and int(i) in inits else dataclasses.replace(b, yaw=a.yaw)
+             for i, b, a in zip(obs.instance_ids, boxes, axes)]
     switched = [int(b.instance_id) for b, a in zip(boxes, axes) if a.switched]
     note += f"; axis turned for {switched}" if switched else ""
     return boxes, boxes, note, surface

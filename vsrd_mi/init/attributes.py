@@ -11,7 +11,7 @@ No ground truth is read anywhere.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -84,6 +84,19 @@ class InstanceInit:
         size = self.size if self.size is not None else np.asarray(default_size, float)
         return Box3D(centre=self.centre, size=size, yaw=self.yaw, velocity=self.velocity,
                      dynamic=self.dynamic, instance_id=self.instance_id)
+
+    def turned(self, yaw: float, cfg: FootprintConfig) -> InstanceInit:
+        """This instance with ``yaw`` and its footprint fitted again for it (:func:`fit_footprint`
+        on ``fit_points``; only the yaw changes where the footprint was not fitted). Where the
+        axis hypotheses turn a box (:mod:`vsrd_mi.optimise.axis`), the centre must move with the
+        length: a footprint fitted along the wrong axis puts the centre half a width behind the
+        seen faces instead of half a length, and the init anchor held it there (a perpendicular
+        SUV's box ended 1.1 m out in the road, in front of its nose)."""
+        if self.fit_points is None or self.fit_cameras is None or not cfg.enabled:
+            return replace(self, yaw=float(yaw))
+        quantile = cfg.fit_quantile_dynamic if self.dynamic else cfg.fit_quantile
+        centre, size = fit_footprint(self.fit_points, float(yaw), self.fit_cameras, cfg, quantile)
+        return replace(self, yaw=float(yaw), centre=centre, size=size)
 
 
 # --------------------------------------------------------------------------------------------
