@@ -90,8 +90,8 @@ class InstanceInit:
         on ``fit_points``; only the yaw changes where the footprint was not fitted). Where the
         axis hypotheses turn a box (:mod:`vsrd_mi.optimise.axis`), the centre must move with the
         length: a footprint fitted along the wrong axis puts the centre half a width behind the
-        seen faces instead of half a length, and the init anchor held it there (a perpendicular
-        SUV's box ended 1.1 m out in the road, in front of its nose)."""
+        seen faces instead of half a length, where the init anchor would hold it (a car in a
+        perpendicular bay seen nose first would stand a metre out in the road; docs/accuracy.md)."""
         if self.fit_points is None or self.fit_cameras is None or not cfg.enabled:
             return replace(self, yaw=float(yaw))
         quantile = cfg.fit_quantile_dynamic if self.dynamic else cfg.fit_quantile
