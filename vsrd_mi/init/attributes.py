@@ -94,8 +94,8 @@ class InstanceInit:
         perpendicular bay seen nose first would stand a metre out in the road; docs/accuracy.md)."""
         if self.fit_points is None or self.fit_cameras is None or not cfg.enabled:
             return replace(self, yaw=float(yaw))
-        quantile = cfg.fit_quantile_dynamic if self.dynamic else cfg.fit_quantile
-        centre, size = fit_footprint(self.fit_points, float(yaw), self.fit_cameras, cfg, quantile)
+        centre, size = fit_footprint(self.fit_points, float(yaw), self.fit_cameras, cfg,
+                                     cfg.fit_quantile_for(self.dynamic))
         return replace(self, yaw=float(yaw), centre=centre, size=size)
 
 
@@ -549,8 +549,7 @@ def initialise_instance(instance_id: int, clouds: dict[int, np.ndarray],
     yaw = yaw_from_velocity(velocity) if dynamic else dominant_yaw(pts, cfg.orientation)
     axis_seen = dynamic or length_axis_seen(pts, yaw, cfg.orientation)
     if fp.enabled:
-        centre, size = fit_footprint(pts, yaw, cams, fp,
-                                     fp.fit_quantile_dynamic if dynamic else fp.fit_quantile)
+        centre, size = fit_footprint(pts, yaw, cams, fp, fp.fit_quantile_for(dynamic))
     else:
         centre, size = cloud_mean.copy(), None
     return InstanceInit(instance_id=instance_id, centre=centre, yaw=yaw, velocity=velocity,

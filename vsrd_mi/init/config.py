@@ -236,6 +236,10 @@ class FootprintConfig:
     #: well in front of the surface (depth noise ~0.8 m at 33 m on KITTI-360).
     max_refine_shift: float = 4.0
 
+    def fit_quantile_for(self, dynamic: bool) -> float:
+        """The refinement's quantile for a moving (``dynamic``) or a parked car."""
+        return self.fit_quantile_dynamic if dynamic else self.fit_quantile
+
     def __post_init__(self) -> None:
         """Refuse values the fit cannot use, naming the field (``footprint.<field>``)."""
         sizes = (np.asarray(self.typical_size, dtype=float), np.asarray(self.max_size, dtype=float))
