@@ -159,7 +159,7 @@ def test_projection_of_a_box_straight_ahead_by_hand():
 
 def np_profile_footprint(centre, size, yaw, world_to_cam, clearance, overhang) -> np.ndarray:
     """Independent car-profile footprint: the union of the body box (bottom raised by
-    ``clearance``) and the wheel box (``overhang`` off each end), y down."""
+    ``clearance``) and the wheel box (``overhang`` metres off each end), y down."""
     body_c, body_s = np.array(centre, float), np.array(size, float)
     body_c[1] -= clearance / 2
     body_s[1] -= clearance
@@ -176,7 +176,8 @@ def test_car_profile_projection_by_hand():
     v = 286.875) and the wheels' ground contact (y = 1 at z = 8.9: v = 296.18)."""
     field, centre, size = straight_ahead()
     lanes = losses.ProjectionLanes(np.array([0]), np.zeros(1), np.eye(4)[None], np.zeros((1, 4)), K, IMAGE_BOUNDS)
-    x1, y1, x2, y2, valid = losses.projected_boxes(field.decode(), lanes, CarProfile(clearance=0.25, overhang=0.9, corner=0.0, mirror=0.0, roof=1.0))
+    # overhang 0.225 of the 4 m length: the wheels 0.9 m in from each end
+    x1, y1, x2, y2, valid = losses.projected_boxes(field.decode(), lanes, CarProfile(clearance=0.25, overhang=0.225, corner=0.0, mirror=0.0, roof=1.0))
     got = np.array([values(v)[0] for v in (x1, y1, x2, y2)])
     by_hand = [288.75, 202.5, 413.75, 240 + 500 * 1.0 / 8.9]
     np.testing.assert_allclose(got, by_hand, atol=2e-3)
@@ -193,20 +194,20 @@ def test_car_profile_projection_by_hand():
     low = np.eye(4)
     low[1, 3] = -1.0
     lanes = losses.ProjectionLanes(np.array([0]), np.zeros(1), low[None], np.zeros((1, 4)), K, IMAGE_BOUNDS)
-    got = losses.projected_boxes(field.decode(), lanes, CarProfile(clearance=0.25, overhang=0.9, corner=0.0, mirror=0.0, roof=1.0))
+    got = losses.projected_boxes(field.decode(), lanes, CarProfile(clearance=0.25, overhang=0.225, corner=0.0, mirror=0.0, roof=1.0))
     np.testing.assert_allclose([values(v)[0] for v in got[1:4:2]], [140.0, 240.0], atol=2e-3)
 
 
 def test_car_profile_parts_are_capped_on_small_boxes():
-    """A 1 m long, 0.5 m tall box: the overhang (0.9 m) and the clearance (0.25 m) are capped at
-    0.3 of the length and height, so the wheel box keeps 0.4 m and the body 0.35 m."""
+    """A 1 m long, 0.5 m tall box: the clearance (0.25 m) is capped at 0.3 of the height, so the
+    body keeps 0.35 m; the overhang is a share of the length (0.2: the wheel box keeps 0.6 m)."""
     field = field_of(np.array([[0.0, 0.5, 10.0]]), np.array([[1.0, 0.5, 1.0]]), np.zeros(1))
     b = field.boxes()
     lanes = losses.ProjectionLanes(np.array([0]), np.zeros(1), np.eye(4)[None], np.zeros((1, 4)), K, IMAGE_BOUNDS)
-    got = losses.projected_boxes(field.decode(), lanes, CarProfile(clearance=0.25, overhang=0.9, corner=0.0, mirror=0.0, roof=1.0))
+    got = losses.projected_boxes(field.decode(), lanes, CarProfile(clearance=0.25, overhang=0.2, corner=0.0, mirror=0.0, roof=1.0))
     size = b["size"][0]
     expected = np_profile_footprint(b["centre"][0], size, 0.0, np.eye(4), min(0.25, 0.3 * size[1]),
-                                    min(0.9, 0.3 * size[2]))
+                                    0.2 * size[2])
     np.testing.assert_allclose([values(v)[0] for v in got[:4]], expected, atol=2e-3)
     assert bool(values(got[4])[0])
 
@@ -238,12 +239,13 @@ def test_car_profile_cut_corners_project_the_octagonal_prism(yaw):
     field = field_of(centre[None], size[None], np.array([yaw]))
     b = field.boxes()
     lanes = losses.ProjectionLanes(np.array([0]), np.zeros(1), np.eye(4)[None], np.zeros((1, 4)), K, IMAGE_BOUNDS)
-    profile = CarProfile(clearance=0.25, overhang=0.9, corner=0.3, mirror=0.0, roof=1.0)
+    profile = CarProfile(clearance=0.25, overhang=0.2, corner=0.3, mirror=0.0, roof=1.0)
     got = np.array([values(v)[0] for v in losses.projected_boxes(field.decode(), lanes, profile)[:4]])
-    expected = np_cut_corner_footprint(b["centre"][0], b["size"][0], float(b["yaw"][0]), np.eye(4), 0.25, 0.9, 0.3)
+    expected = np_cut_corner_footprint(b["centre"][0], b["size"][0], float(b["yaw"][0]), np.eye(4), 0.25,
+                                       0.2 * b["size"][0][2], 0.3)
     np.testing.assert_allclose(got, expected, atol=2e-3)
     uncut = np.array([values(v)[0] for v in losses.projected_boxes(
-        field.decode(), lanes, CarProfile(clearance=0.25, overhang=0.9, corner=0.0, mirror=0.0, roof=1.0))[:4]])
+        field.decode(), lanes, CarProfile(clearance=0.25, overhang=0.2, corner=0.0, mirror=0.0, roof=1.0))[:4]])
     assert got[0] >= uncut[0] - 1e-4 and got[2] <= uncut[2] + 1e-4
     if yaw in (0.6, math.pi / 4):
         assert got[0] > uncut[0] + 1.0 and got[2] < uncut[2] - 1.0  # oblique: both sides in by > 1 px
@@ -291,7 +293,7 @@ def np_roof_profile_footprint(centre, size, yaw, world_to_cam, profile: CarProfi
     plan = [(sx * (w - m), sz * (l - co)) for sx in (-1, 1) for sz in (-1, 1)]
     plan += [(sx * (w - m - co), sz * l) for sx in (-1, 1) for sz in (-1, 1)]
     local = [(x, y, z) for x, z in plan for y in (waist, h - cl)]
-    local += [(sx * (w - m), y, sz * (l - profile.overhang)) for sx in (-1, 1) for y in (waist, h)
+    local += [(sx * (w - m), y, sz * l * (1 - 2 * profile.overhang)) for sx in (-1, 1) for y in (waist, h)
               for sz in (-1, 1)]
     local += [(sx * (w - m - co), y, sz * l * profile.roof) for sx in (-1, 1) for y in (top, h - cl)
               for sz in (-1, 1)]
@@ -337,6 +339,8 @@ def test_car_profile_rejects_negative_values():
     for field in ("clearance", "overhang", "corner", "mirror"):
         with pytest.raises(ValueError, match="clearance, overhang, corner and mirror must be >= 0"):
             CarProfile(**{field: -0.1})
+    with pytest.raises(ValueError, match="overhang is a share of the length"):
+        CarProfile(overhang=0.9)  # metres, not a share
 
 
 @pytest.mark.parametrize("containment, excess", [(False, 0.0), (True, 0.0), (True, 0.25), (True, 1.0)])
@@ -435,7 +439,7 @@ def ad_and_central_differences(field, keys, loss, eps: dict) -> tuple[dict, dict
     return ad, fd
 
 
-@pytest.mark.parametrize("profile", [None, CarProfile(clearance=0.25, overhang=0.9, corner=0.0, mirror=0.0, roof=1.0), CarProfile()])
+@pytest.mark.parametrize("profile", [None, CarProfile(clearance=0.25, overhang=0.2, corner=0.0, mirror=0.0, roof=1.0), CarProfile()])
 def test_projection_loss_gradients_match_finite_differences(profile):
     field, lanes = two_box_lanes()
     keys = ("centre", "size", "yaw", "velocity")

@@ -18,6 +18,8 @@ from ..init.config import InitConfig
 
 #: Forms of the projection loss (see :func:`vsrd_mi.optimise.losses.projection_loss`).
 PROJECTION_MODES = ("symmetric", "containment")
+#: Largest ``CarProfile.overhang`` (share of the length at each end): the wheel part keeps 0.4 of it.
+MAX_OVERHANG_SHARE = 0.3
 
 
 @dataclass(frozen=True)
@@ -128,8 +130,9 @@ class LossWeights:
 class CarProfile:
     """What the projection loss projects: the car a box bounds, not the box's 8 corners.
 
-    A car meets the ground only at its wheels, which sit ``overhang`` metres in from each end of
-    its box (axle to bumper, 0.7-1.1 m on cars), and the body over the overhangs starts
+    A car meets the ground only at its wheels, which sit ``overhang`` of its length in from each
+    end of its box (axle to bumper: a share of the length, because wheelbases scale with it), and
+    the body over the overhangs starts
     ``clearance`` metres above the ground (the bumpers' underside): the box's bottom corners at the
     ends enclose empty space, so a car's mask ends above its box's projected bottom (8.5 px median
     within 10 m), a gap the symmetric projection loss closed by pushing boxes away or shortening
@@ -161,7 +164,13 @@ class CarProfile:
     """
 
     clearance: float = 0.25
-    overhang: float = 0.9
+    #: Axle-to-bumper distance at each end as a share of the box's length: (length - wheelbase)
+    #: / 2 / length is 0.18-0.21 on common cars (published lengths / wheelbases: Fiat 500
+    #: 3.55 / 2.30 m, VW Golf VII 4.26 / 2.64, Tesla Model 3 4.69 / 2.88, VW Passat B8 4.77 / 2.79,
+    #: BMW X5 G05 4.92 / 2.98, VW Transporter T6 4.90 / 3.00, Toyota Hilux 5.33 / 3.09). A fixed
+    #: distance (0.9 m) made the wheels of short cars sit too far in and of long ones too far out,
+    #: so lengths came out long for city cars and short for pickups (docs/accuracy.md).
+    overhang: float = 0.2
     corner: float = 0.3
     mirror: float = 0.12
     #: Share of the box's length over which the car reaches the box's top (centred).
@@ -178,6 +187,9 @@ class CarProfile:
         if self.clearance < 0 or self.overhang < 0 or self.corner < 0 or self.mirror < 0:
             raise ValueError("CarProfile: clearance, overhang, corner and mirror must be >= 0, got "
                              f"{self.clearance}, {self.overhang}, {self.corner}, {self.mirror}")
+        if self.overhang > MAX_OVERHANG_SHARE:
+            raise ValueError(f"CarProfile: overhang is a share of the length at each end, at most "
+                             f"{MAX_OVERHANG_SHARE}, got {self.overhang}")
         if not 0.0 < self.roof <= 1.0:
             raise ValueError(f"CarProfile: roof must be in (0, 1] (a share of the length), got {self.roof}")
         if not 0.5 <= self.waist <= 1.0:

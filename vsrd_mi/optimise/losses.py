@@ -162,7 +162,7 @@ def projected_boxes(dec: DecodedBoxes, lanes: ProjectionLanes, profile: CarProfi
     narrower on each side than the box, which holds the mirrors) above
     ``profile.clearance`` over the full length, its plan's corners cut by ``profile.corner``
     (two crossed boxes, one ``corner`` narrower on each side, one ``corner`` shorter at each
-    end), and a part reaching the ground over the length less ``profile.overhang`` at each end,
+    end), and a part reaching the ground over the length less ``profile.overhang`` of it at each end,
     where the wheels meet it; with ``profile.roof < 1`` these parts end at ``profile.waist`` of the
     height and a roof part (``profile.roof`` of the length, centred, as narrow as the octagon's
     cut ends so that it lies inside the body's plan) reaches the box's top (see
@@ -184,7 +184,7 @@ def projected_boxes(dec: DecodedBoxes, lanes: ProjectionLanes, profile: CarProfi
     else:
         parts = [box_corners(boxes, raise_bottom=profile.clearance, narrow=body, keep_height=waist)]
     if profile.clearance > 0:  # below the bumpers only the wheels, between the overhangs
-        parts.append(box_corners(boxes, shorten=profile.overhang, narrow=body, keep_height=waist))
+        parts.append(box_corners(boxes, keep_length=1.0 - 2.0 * profile.overhang, narrow=body, keep_height=waist))
     if profile.roof < 1.0:  # the full height only over the roof, centred on the box
         parts.append(box_corners(boxes, raise_bottom=profile.clearance, narrow=body + profile.corner,
                                  keep_length=profile.roof))
