@@ -19,6 +19,8 @@ import pytest
 import vsrd_mi  # noqa: F401
 from vsrd_mi.autolabel.consensus import (
     apply_consensus,
+    axis_difference,
+    axis_inliers,
     axis_mean,
     fuse_boxes,
     labels_in_frame,
@@ -209,6 +211,49 @@ def test_consensus_config():
     assert AutolabelConfig.from_dict(cfg.to_dict()) == cfg
     with pytest.raises(ValueError, match="min_targets"):
         ConsensusConfig(min_targets=1)
+    for bad in (0.0, 95.0):
+        with pytest.raises(ValueError, match="axis_gate_deg must be in"):
+            ConsensusConfig(axis_gate_deg=bad)
+
+
+def test_axis_difference_has_period_pi():
+    np.testing.assert_allclose(axis_difference(np.array([0.1, 0.1, 0.0]), np.array([0.1 + math.pi, -0.1, math.pi / 2])),
+                               [0.0, 0.2, math.pi / 2], atol=1e-12)
+    assert axis_difference(math.pi / 2 - 0.05, -math.pi / 2 + 0.05) == pytest.approx(0.1)
+
+
+def test_axis_inliers_keep_the_axis_most_weight_agrees_with():
+    gate = math.radians(30)
+    # two along the road (one end for end), one across: the crossed one is out
+    assert axis_inliers(np.array([0.05, math.pi - 0.1, 1.6]), np.ones(3), gate).tolist() == [True, True, False]
+    # the one across weighs more than the two together: it alone is kept
+    assert axis_inliers(np.array([0.05, -0.1, 1.6]), np.array([1.0, 1.0, 3.0]), gate).tolist() == [False, False, True]
+    # two that disagree: the heavier; equal weights: the first
+    assert axis_inliers(np.array([0.0, 1.5]), np.array([1.0, 2.0]), gate).tolist() == [False, True]
+    assert axis_inliers(np.array([0.0, 1.5]), np.ones(2), gate).tolist() == [True, False]
+
+
+def test_crossed_boxes_are_not_averaged_into_a_diagonal():
+    """Two targets' boxes of one car, one standing across it: the fused box is the more
+    confident one (yaw, size and centre), not the 45-degree mean, and it replaces both."""
+    right = Box3D([3.0, 0.8, 18.0], [2.1, 1.7, 4.8], 0.01, instance_id=7)
+    across = Box3D([3.4, 0.8, 17.6], [2.0, 1.5, 4.4], 0.01 + math.pi / 2 + 0.15, instance_id=7)
+    for conf, winner in (((0.8, 0.6), right), ((0.5, 0.7), across)):
+        fused, inliers = fuse_boxes([right, across], gate=2.0, weights=np.ones(2), axis_gate_deg=30.0,
+                                    confidences=np.array(conf))
+        assert inliers.tolist() == [True, True]
+        assert axis_difference(fused.yaw, winner.yaw) < 1e-9
+        np.testing.assert_allclose(fused.size, winner.size)
+        np.testing.assert_allclose(fused.centre, winner.centre)
+    # without the gate (90 degrees) the two are averaged, as before the gate existed
+    mean, _ = fuse_boxes([right, across], gate=2.0, axis_gate_deg=90.0, confidences=np.array([0.8, 0.6]))
+    assert math.radians(40) < axis_difference(mean.yaw, right.yaw) < math.radians(50)
+    # of three boxes the one across is left out of the fusion but still gets the fused box
+    third = Box3D([3.2, 0.8, 18.2], [2.2, 1.7, 5.0], -0.03, instance_id=7)
+    fused, inliers = fuse_boxes([right, across, third], gate=2.0, axis_gate_deg=30.0)
+    assert inliers.tolist() == [True, True, True]
+    assert axis_difference(fused.yaw, 0.0) < math.radians(2)
+    np.testing.assert_allclose(fused.size, [2.15, 1.7, 4.9])
 
 
 def test_autolabel_cli_applies_the_consensus_after_its_targets(scene, tmp_path, monkeypatch, capsys):

@@ -16,8 +16,12 @@ frame and fused:
   that saw it from 45 m;
 * inliers: contributors whose centre lies within ``gate`` metres of the contributors' weighted
   median centre (a car that was parked in two places, or one target's wrong box, is not averaged
-  in);
-* the fused box: component-wise weighted median of the inliers' centres and sizes, and their
+  in); they all get the fused box;
+* the axis: the inliers whose axis lies within ``axis_gate`` degrees of the axis that carries the
+  most weight times confidence (:func:`axis_inliers`) are the ones fused: a box standing across
+  the car is a wrong box, and averaging it in gives a diagonal that no target found. Of two
+  targets that disagree, the one whose box matched its masks better (its confidence) wins;
+* the fused box: component-wise weighted median of the fused boxes' centres and sizes, and their
   weighted mean axis ``yaw = arg(sum_k w_k exp(2 i yaw_k)) / 2`` (period pi: a box turned end for
   end is the same box);
   its front is where the inliers' heading evidence (:mod:`vsrd_mi.optimise.heading`: silhouettes
@@ -127,6 +131,24 @@ def axis_mean(yaws: np.ndarray, weights: np.ndarray | None = None) -> float:
     return math.atan2(math.sin(mean), math.cos(mean))
 
 
+def axis_difference(a: np.ndarray | float, b: np.ndarray | float) -> np.ndarray:
+    """Angle (radians, in [0, pi/2]) between axes ``a`` and ``b`` of period pi."""
+    d = np.mod(np.asarray(a, dtype=np.float64) - np.asarray(b, dtype=np.float64), np.pi)
+    return np.minimum(d, np.pi - d)
+
+
+def axis_inliers(yaws: np.ndarray, weights: np.ndarray, gate_rad: float) -> np.ndarray:
+    """Mask of the axes within ``gate_rad`` of the modal axis: the one whose neighbours within the
+    gate carry the most weight (ties: the heavier, then the first). Of two boxes that disagree
+    only the heavier is left."""
+    yaws = np.asarray(yaws, dtype=np.float64)
+    w = np.asarray(weights, dtype=np.float64)
+    close = axis_difference(yaws[:, None], yaws[None, :]) <= gate_rad
+    support = close @ w
+    best = max(range(len(yaws)), key=lambda k: (support[k], w[k], -k))
+    return close[best]
+
+
 def fused_front(axis: float, yaws: np.ndarray, evidence: np.ndarray, min_evidence: float) -> float:
     """``axis`` or ``axis + pi``: where the boxes' summed heading evidence points (each box's
     evidence is for its own yaw) when its magnitude exceeds ``min_evidence``, else where most
@@ -138,22 +160,30 @@ def fused_front(axis: float, yaws: np.ndarray, evidence: np.ndarray, min_evidenc
 
 
 def fuse_boxes(boxes: list[Box3D], gate: float, evidence: np.ndarray | None = None,
-               min_evidence: float = 0.0, weights: np.ndarray | None = None) -> tuple[Box3D, np.ndarray] | None:
+               min_evidence: float = 0.0, weights: np.ndarray | None = None,
+               axis_gate_deg: float = 90.0, confidences: np.ndarray | None = None
+               ) -> tuple[Box3D, np.ndarray] | None:
     """Consensus of one parked car's boxes (one frame): see the module docstring. ``evidence``:
     each box's heading evidence for its own yaw (None: none); ``weights``: each box's weight
-    (None: equal).
+    (None: equal); ``axis_gate_deg``: the axis gate (90: none); ``confidences``: each box's
+    confidence, which scales its say in the axis (None: equal).
 
-    Returns the fused box and the inlier mask, or None when fewer than two boxes are inliers.
+    Returns the fused box and the inlier mask (the boxes it replaces), or None when fewer than
+    two boxes are inliers.
     """
     centres = np.array([b.centre for b in boxes])
     w = np.ones(len(boxes)) if weights is None else np.asarray(weights, dtype=np.float64)
     inliers = np.linalg.norm(centres - weighted_median(centres, w), axis=1) <= gate
     if inliers.sum() < 2:
         return None
-    kept = [b for b, k in zip(boxes, inliers) if k]
-    wk = w[inliers]
+    say = w if confidences is None else w * np.asarray(confidences, dtype=np.float64)
+    fused_mask = inliers.copy()
+    fused_mask[np.flatnonzero(inliers)] = axis_inliers(np.array([b.yaw for b, k in zip(boxes, inliers) if k]),
+                                                       say[inliers], math.radians(axis_gate_deg))
+    kept = [b for b, k in zip(boxes, fused_mask) if k]
+    wk = w[fused_mask]
     yaws = np.array([b.yaw for b in kept])
-    kept_evidence = np.zeros(len(kept)) if evidence is None else np.asarray(evidence, dtype=np.float64)[inliers]
+    kept_evidence = np.zeros(len(kept)) if evidence is None else np.asarray(evidence, dtype=np.float64)[fused_mask]
     yaw = fused_front(axis_mean(yaws, wk), yaws, kept_evidence, min_evidence)
     fused = Box3D(centre=weighted_median(np.array([b.centre for b in kept]), wk),
                   size=weighted_median(np.array([b.size for b in kept]), wk), yaw=yaw,
@@ -169,20 +199,20 @@ def fuse_parked_cars(results: list[TargetBoxes], to_reference: dict[int, np.ndar
     ``min_evidence`` is the heading evidence that decides a fused car's front
     (:class:`~vsrd_mi.optimise.config.HeadingConfig`).
     """
-    seen: dict[int, list[tuple[int, Box3D, float, float]]] = {}
+    seen: dict[int, list[tuple[int, Box3D, float, float, float]]] = {}
     for r in results:
         evidence = r.heading_evidence or (0.0,) * len(r.boxes)
-        for b, e in zip(r.boxes, evidence):
+        for b, e, c in zip(r.boxes, evidence, r.confidences):
             if not b.dynamic:  # the box's range from its own target's camera sets its weight
                 weight = 1.0 / max(float(np.linalg.norm(b.centre)), cfg.near_range) ** 2
                 seen.setdefault(b.instance_id, []).append((r.target, b.transformed(to_reference[r.target]), e,
-                                                           weight))
+                                                           weight, c if np.isfinite(c) else 0.0))
     fused = []
     for iid, items in sorted(seen.items()):
         if len(items) < max(cfg.min_targets, 2):
             continue
-        out = fuse_boxes([b for _, b, _, _ in items], cfg.gate, np.array([e for _, _, e, _ in items]), min_evidence,
-                         np.array([w for _, _, _, w in items]))
+        out = fuse_boxes([it[1] for it in items], cfg.gate, np.array([it[2] for it in items]), min_evidence,
+                         np.array([it[3] for it in items]), cfg.axis_gate_deg, np.array([it[4] for it in items]))
         if out is None or out[1].sum() < cfg.min_targets:
             continue
         box, inliers = out

@@ -237,7 +237,8 @@ class EarlyStop:
 class ConsensusConfig:
     """Sequence-level consensus of parked cars after every target is done (not in the paper;
     :mod:`vsrd_mi.autolabel.consensus`): each parked car's boxes from the targets that see it are
-    fused (median centre and size, mean axis) and the fused box replaces them in the labels."""
+    fused (median centre and size, mean axis of the boxes that agree on it) and the fused box
+    replaces them in the labels."""
 
     enabled: bool = True
     #: Boxes whose centre is farther than this (m) from the median centre are left out (a car
@@ -250,11 +251,19 @@ class ConsensusConfig:
     #: that target's camera): closer views pin a car down better (stereo depth error and the pixel
     #: footprint both scale with range squared); within ``near_range`` all count alike.
     near_range: float = 10.0
+    #: Boxes whose axis is farther than this (degrees, modulo 180) from the axis most of the
+    #: weight agrees with are left out: a box standing across the car is a wrong box, not an
+    #: estimate to average (the weighted mean of two crossed axes is a diagonal that no target
+    #: found). One car's boxes from different targets differ by up to ~15 degrees where both are
+    #: right, by 45-90 where a target took the wrong axis. 90 switches the gate off.
+    axis_gate_deg: float = 30.0
 
     def __post_init__(self) -> None:
         if self.gate <= 0 or self.min_targets < 2 or self.near_range <= 0:
             raise ValueError(f"ConsensusConfig: gate and near_range must be > 0 and min_targets >= 2, got "
                              f"{self.gate}, {self.near_range}, {self.min_targets}")
+        if not 0.0 < self.axis_gate_deg <= 90.0:
+            raise ValueError(f"ConsensusConfig: axis_gate_deg must be in (0, 90] degrees, got {self.axis_gate_deg}")
 
 
 @dataclass(frozen=True)
