@@ -24,7 +24,7 @@ frame and fused:
 * the fused box: component-wise weighted median of the fused boxes' centres and sizes, and their
   weighted mean axis ``yaw = arg(sum_k w_k exp(2 i yaw_k)) / 2`` (period pi: a box turned end for
   end is the same box);
-  its front is where the inliers' heading evidence (:mod:`vsrd_mi.optimise.heading`: silhouettes
+  its front is where the fused boxes' heading evidence (:mod:`vsrd_mi.optimise.heading`: silhouettes
   front against back, summed over the targets) points when that sum exceeds the evidence
   threshold, else where most inliers face (a tie: the first inlier).
 
