@@ -43,6 +43,7 @@ import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -191,6 +192,19 @@ def fuse_boxes(boxes: list[Box3D], gate: float, evidence: np.ndarray | None = No
     return fused, inliers
 
 
+class Contribution(NamedTuple):
+    """One target's box of a parked car, in the reference frame, and what it brings to the fusion."""
+
+    target: int
+    box: Box3D
+    #: Heading evidence for the box's own front (0 when none).
+    evidence: float
+    #: ``1 / max(range, near_range)^2``, the range from the target's camera.
+    weight: float
+    #: The box's confidence (docs/method.md §7; 0 when unknown).
+    confidence: float
+
+
 def fuse_parked_cars(results: list[TargetBoxes], to_reference: dict[int, np.ndarray],
                      cfg: ConsensusConfig, min_evidence: float = HeadingConfig.min_evidence) -> list[FusedCar]:
     """Fuse every parked instance seen by at least ``cfg.min_targets`` targets.
@@ -199,26 +213,28 @@ def fuse_parked_cars(results: list[TargetBoxes], to_reference: dict[int, np.ndar
     ``min_evidence`` is the heading evidence that decides a fused car's front
     (:class:`~vsrd_mi.optimise.config.HeadingConfig`).
     """
-    seen: dict[int, list[tuple[int, Box3D, float, float, float]]] = {}
+    seen: dict[int, list[Contribution]] = {}
     for r in results:
         evidence = r.heading_evidence or (0.0,) * len(r.boxes)
         for b, e, c in zip(r.boxes, evidence, r.confidences):
             if not b.dynamic:  # the box's range from its own target's camera sets its weight
                 weight = 1.0 / max(float(np.linalg.norm(b.centre)), cfg.near_range) ** 2
-                seen.setdefault(b.instance_id, []).append((r.target, b.transformed(to_reference[r.target]), e,
-                                                           weight, c if np.isfinite(c) else 0.0))
+                seen.setdefault(b.instance_id, []).append(Contribution(
+                    r.target, b.transformed(to_reference[r.target]), e, weight, c if np.isfinite(c) else 0.0))
     fused = []
     for iid, items in sorted(seen.items()):
         if len(items) < max(cfg.min_targets, 2):
             continue
-        out = fuse_boxes([it[1] for it in items], cfg.gate, np.array([it[2] for it in items]), min_evidence,
-                         np.array([it[3] for it in items]), cfg.axis_gate_deg, np.array([it[4] for it in items]))
+        out = fuse_boxes([c.box for c in items], cfg.gate, np.array([c.evidence for c in items]), min_evidence,
+                         np.array([c.weight for c in items]), cfg.axis_gate_deg,
+                         np.array([c.confidence for c in items]))
         if out is None or out[1].sum() < cfg.min_targets:
             continue
         box, inliers = out
-        targets = tuple(t for (t, *_), k in zip(items, inliers) if k)
-        spread = float(max(np.linalg.norm(b.centre - box.centre) for (_, b, *_), k in zip(items, inliers) if k))
-        fused.append(FusedCar(iid, box, targets, tuple(t for (t, *_), k in zip(items, inliers) if not k), spread))
+        kept = [c for c, k in zip(items, inliers) if k]
+        spread = float(max(np.linalg.norm(c.box.centre - box.centre) for c in kept))
+        fused.append(FusedCar(iid, box, tuple(c.target for c in kept),
+                              tuple(c.target for c, k in zip(items, inliers) if not k), spread))
     return fused
 
 
