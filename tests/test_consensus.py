@@ -19,7 +19,6 @@ import pytest
 import vsrd_mi  # noqa: F401
 from vsrd_mi.autolabel.consensus import (
     apply_consensus,
-    axis_difference,
     axis_inliers,
     axis_mean,
     fuse_boxes,
@@ -35,7 +34,7 @@ from vsrd_mi.data.kitti_labels import (
 )
 from vsrd_mi.data.observations import opt_from_world
 from vsrd_mi.data.selection import SelectionConfig, select_targets
-from vsrd_mi.geometry.boxes import Box3D
+from vsrd_mi.geometry.boxes import Box3D, axis_difference
 from vsrd_mi.optimise.config import (
     AutolabelConfig,
     ConsensusConfig,

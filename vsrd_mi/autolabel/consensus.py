@@ -53,7 +53,7 @@ from ..data.kitti_labels import KittiLabel, label_from_box, write_labels
 from ..data.masks import tight_box
 from ..data.observations import opt_from_world
 from ..errors import DataError
-from ..geometry.boxes import Box3D
+from ..geometry.boxes import Box3D, axis_difference
 from ..geometry.boxes2d import iou_matrix
 from ..geometry.camera import box_to_2d
 from ..optimise.config import ConsensusConfig, HeadingConfig
@@ -132,12 +132,6 @@ def axis_mean(yaws: np.ndarray, weights: np.ndarray | None = None) -> float:
     return math.atan2(math.sin(mean), math.cos(mean))
 
 
-def axis_difference(a: np.ndarray | float, b: np.ndarray | float) -> np.ndarray:
-    """Angle (radians, in [0, pi/2]) between axes ``a`` and ``b`` of period pi."""
-    d = np.mod(np.asarray(a, dtype=np.float64) - np.asarray(b, dtype=np.float64), np.pi)
-    return np.minimum(d, np.pi - d)
-
-
 def axis_inliers(yaws: np.ndarray, weights: np.ndarray, gate_rad: float) -> np.ndarray:
     """Mask of the axes within ``gate_rad`` of the modal axis: the one whose neighbours within the
     gate carry the most weight (ties: the heavier, then the first). Of two boxes that disagree
@@ -178,12 +172,11 @@ def fuse_boxes(boxes: list[Box3D], gate: float, evidence: np.ndarray | None = No
     if inliers.sum() < 2:
         return None
     say = w if confidences is None else w * np.asarray(confidences, dtype=np.float64)
+    all_yaws = np.array([b.yaw for b in boxes])
     fused_mask = inliers.copy()
-    fused_mask[np.flatnonzero(inliers)] = axis_inliers(np.array([b.yaw for b, k in zip(boxes, inliers) if k]),
-                                                       say[inliers], math.radians(axis_gate_deg))
+    fused_mask[inliers] = axis_inliers(all_yaws[inliers], say[inliers], math.radians(axis_gate_deg))
     kept = [b for b, k in zip(boxes, fused_mask) if k]
-    wk = w[fused_mask]
-    yaws = np.array([b.yaw for b in kept])
+    wk, yaws = w[fused_mask], all_yaws[fused_mask]
     kept_evidence = np.zeros(len(kept)) if evidence is None else np.asarray(evidence, dtype=np.float64)[fused_mask]
     yaw = fused_front(axis_mean(yaws, wk), yaws, kept_evidence, min_evidence)
     fused = Box3D(centre=weighted_median(np.array([b.centre for b in kept]), wk),

@@ -32,7 +32,7 @@ from typing import Callable, Sequence
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from ..geometry.boxes import Box3D, wrap_angle
+from ..geometry.boxes import Box3D, axis_difference, wrap_angle
 from ..geometry.iou3d import iou_matrices
 from .attributes import UNKNOWN, CarAttributes
 
@@ -95,8 +95,7 @@ def hungarian_pairs(gt: Sequence[Box3D], pred: Sequence[Box3D], min_iou: float =
 
 def yaw_error_mod_pi(a: float, b: float) -> float:
     """Absolute yaw difference modulo pi, in radians, in ``[0, pi/2]``."""
-    d = abs(float(wrap_angle(a - b)))
-    return min(d, np.pi - d)
+    return float(axis_difference(a, b))
 
 
 def heading_error(a: float, b: float) -> float:

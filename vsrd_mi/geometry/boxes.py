@@ -25,6 +25,13 @@ def wrap_angle(a: np.ndarray | float) -> np.ndarray | float:
     return (np.asarray(a) + np.pi) % (2.0 * np.pi) - np.pi
 
 
+def axis_difference(a: np.ndarray | float, b: np.ndarray | float) -> np.ndarray:
+    """Angle (radians, in ``[0, pi/2]``) between the axes of yaws ``a`` and ``b``: their
+    difference modulo pi (a box turned end for end has the same axis). Broadcasts."""
+    d = np.abs(wrap_angle(np.asarray(a, dtype=np.float64) - np.asarray(b, dtype=np.float64)))
+    return np.minimum(d, np.pi - d)
+
+
 def yaw_matrix(yaw: float) -> np.ndarray:
     """Rotation ``R_y(yaw)`` about +y (y-down camera frame)."""
     c, s = np.cos(yaw), np.sin(yaw)
