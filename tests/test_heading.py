@@ -179,9 +179,9 @@ def test_axis_hypotheses_turn_a_box_standing_across_back_to_its_length(target, m
     assert len(choose_yaw(turned, n, obs, everywhere, anchor=2.0).hypotheses) == 4
 
 
-def lamp_painted_images(obs, n, box, everywhere: bool) -> list[np.ndarray]:
-    """Grey images whose instance ``n`` has red rear lamps on every 8th pixel of its box's rear
-    fifth, or (``everywhere``) red paint over its whole mask."""
+def lamp_painted_images(obs, n, box, everywhere: bool, most: int | None = None) -> list[np.ndarray]:
+    """Grey images whose instance ``n`` has red rear lamps on every 8th column of its box's rear
+    fifth (at most ``most`` pixels per frame), or (``everywhere``) red paint over its whole mask."""
     from vsrd_mi.optimise.heading import FRONT_END, REAR_END
 
     W, H = obs.image_size
@@ -198,6 +198,9 @@ def lamp_painted_images(obs, n, box, everywhere: bool) -> list[np.ndarray]:
                 front = rasterise_template(FRONT_END, box, w2c, obs.K[f], (0, 0, W, H))
                 lamp = mask & rear & ~front
                 lamp[:, np.arange(W) % 8 != 0] = False
+                if most is not None:
+                    ys, xs = np.nonzero(lamp)
+                    lamp[ys[most:], xs[most:]] = False
                 img[lamp] = (175, 22, 28)
         images.append(img)
     return images
@@ -243,3 +246,31 @@ def test_an_end_seen_head_on_without_red_is_the_front(target):
     assert decision.source == "bare ends" and decision.turned
     off = decide_heading(turned(box), n, obs, dataclasses.replace(no_silhouettes, bare_ends=False), grey)
     assert off.source == "kept" and not off.turned
+
+
+def test_red_balance_counts_lamp_red_pixels_per_end():
+    from vsrd_mi.optimise.heading import MIN_RED_PIXELS, red_balance
+
+    # (end, pixels, red share, facing): the rear shows 32 red pixels over two frames, the front none
+    readings = [(0, 8000, 0.003, 0.1), (0, 2000, 0.004, 0.2), (1, 4000, 0.0, -0.3)]
+    assert red_balance(readings) == (1.0, 2)
+    assert red_balance([(1 - k, p, s, c) for k, p, s, c in readings])[0] == -1.0
+    assert red_balance([(0, 1000, 0.010, 0.0), (1, 1000, 0.008, 0.0)])[0] == 0.0  # 10 against 8: no winner
+    assert red_balance([(0, 1000, (MIN_RED_PIXELS - 1) / 1000, 0.0)])[0] == 0.0  # too few to tell
+    assert red_balance([(0, 1000, 0.5, 0.0), (1, 1000, 0.0, 0.0)]) == (0.0, 0)  # red paint is not a lamp
+
+
+def test_a_few_red_pixels_at_the_rear_turn_a_backwards_box(target):
+    """Rear lamps too small to reach a lamp's share of the end (one red pixel per frame) leave the
+    lamps undecided; their few red pixels, all at one end, still tell the rear."""
+    from vsrd_mi.optimise.heading import lamp_evidence
+
+    obs, truth = target
+    n = int(np.flatnonzero(obs.instance_ids == SIDE_VIEWED)[0])
+    box = truth[SIDE_VIEWED]
+    sparse = lamp_painted_images(obs, n, box, everywhere=False, most=1)
+    assert lamp_evidence(turned(box), n, obs, sparse)[1] < HeadingConfig().min_lamp_views
+    decision = decide_heading(turned(box), n, obs, HeadingConfig(), sparse)
+    assert decision.source == "red balance" and decision.turned and decision.evidence == -1.0
+    off = decide_heading(turned(box), n, obs, dataclasses.replace(HeadingConfig(), red_balance=False), sparse)
+    assert off.source != "red balance"

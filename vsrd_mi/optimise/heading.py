@@ -16,7 +16,9 @@ where the instance is seen, and compares them with the instance's masks:
 A second cue is colour: rear lamps are red, front lamps white or amber. Frame by frame, an end of
 the box (its rear or front fifth) looks lamped when a lamp's share of its visible pixels is red
 (:func:`lamp_evidence`); where the lamped ends agree on which is the rear, the lamps decide, before
-the silhouettes (a red car's paint covers most of both ends and leaves it to them). The same
+the silhouettes (a red car's paint covers most of both ends and leaves it to them). Where no end
+looks lamped, a rear lamp seen from the side or from afar still shows a few red pixels, and a front
+none: the end with clearly more lamp red over all frames is the rear (:func:`red_balance`). The same
 reading says more: every car's rear carries red lamps, so an end seen nearly head-on, large enough
 to show them, and without any red is its front (:func:`bare_end_evidence`: a car seen only from
 the front). Bare ends are the weakest cue (a rear too far or too dark to show red, or a box whose
@@ -54,6 +56,11 @@ RED_RATIO = 2.2
 #: An end of a car looks lamped when this share of its visible pixels is lamp red: a pair of rear
 #: lamps covers a few to a quarter of a car's end; red paint covers most of it.
 LAMP_SHARE = (0.01, 0.3)
+#: Red balance: over all frames, the end with at least this many lamp-red pixels (a lamp seen edge-on
+#: or far: a few pixels) ...
+MIN_RED_PIXELS = 3
+#: ... and at least this many times the other end's is the rear (evidence 1/3 or more).
+RED_DOMINANCE = 2.0
 #: An end takes part in a frame when at least this many of its pixels are visible.
 MIN_END_PIXELS = 30
 #: An end counts as bare (no lamp red) only when it faces the camera within 60 degrees of head-on
@@ -70,12 +77,12 @@ class HeadingDecision:
 
     box: Box3D
     #: Evidence for the box's own heading over the opposite one (before any turn): the vote share of
-    #: the lamps or bare ends, or the silhouettes' mean-IoU advantage.
+    #: the lamps or bare ends, the red balance, or the silhouettes' mean-IoU advantage.
     evidence: float
     #: Frames that took part.
     views: int
-    #: ``"lamps"``, ``"bare ends"``, ``"silhouette"``, ``"prior"``, ``"kept"`` (no evidence, no
-    #: prior) or ``"moving"``.
+    #: ``"lamps"``, ``"red balance"``, ``"silhouette"``, ``"bare ends"``, ``"prior"``, ``"kept"``
+    #: (no evidence, no prior) or ``"moving"``.
     source: str
     #: Whether the box was turned by 180 degrees.
     turned: bool
@@ -217,6 +224,24 @@ def lamp_votes(readings: list[Reading]) -> tuple[float, int]:
     return _votes(lamped.count(0), lamped.count(1))
 
 
+def red_balance(readings: list[Reading]) -> tuple[float, int]:
+    """``(evidence, views)`` of the lamp-red pixels each end shows over :func:`end_readings`'
+    readings (ends redder than :data:`LAMP_SHARE` allows, i.e. red paint, left out): with ``r``
+    red pixels at the rear and ``f`` at the front, ``(r - f) / (r + f)`` when the larger is at
+    least :data:`MIN_RED_PIXELS` and :data:`RED_DOMINANCE` times the smaller, else 0 (positive:
+    the box faces its yaw); ``views`` counts the readings with any lamp red."""
+    red = [0.0, 0.0]
+    views = 0
+    for k, pixels, share, _ in readings:
+        if share <= LAMP_SHARE[1]:
+            red[k] += share * pixels
+            views += share > 0
+    rear, front = red
+    if max(rear, front) < MIN_RED_PIXELS or max(rear, front) < RED_DOMINANCE * min(rear, front):
+        return 0.0, views
+    return (rear - front) / (rear + front), views
+
+
 def bare_end_votes(readings: list[Reading]) -> tuple[float, int]:
     """``(evidence, views)`` of bare ends among :func:`end_readings`' readings (see :func:`bare_end_evidence`)."""
     bare = [k for k, pixels, share, facing in readings
@@ -259,6 +284,11 @@ def decide_heading(box: Box3D, n: int, obs: Observations, cfg: HeadingConfig,
     readings = end_readings(box, n, obs, images, cfg.min_mask_pixels) if images else []
     if readings and (decision := _vote_decision(box, lamp_votes(readings), "lamps", cfg)):
         return decision
+    if readings and cfg.red_balance:
+        evidence, seen = red_balance(readings)
+        if evidence != 0.0:
+            return HeadingDecision(turned(box) if evidence < 0 else box, evidence, seen, "red balance",
+                                   bool(evidence < 0))
     fwd, bwd, views = heading_scores(box, n, obs, min_mask_pixels=cfg.min_mask_pixels)
     evidence = fwd - bwd
     if abs(evidence) > cfg.min_evidence:
