@@ -248,15 +248,18 @@ def test_an_end_seen_head_on_without_red_is_the_front(target):
     assert off.source == "kept" and not off.turned
 
 
-def test_red_balance_counts_lamp_red_pixels_per_end():
+def test_red_balance_compares_the_ends_red_shares():
     from vsrd_mi.optimise.heading import MIN_RED_PIXELS, red_balance
 
     # (end, pixels, red share, facing): the rear shows 32 red pixels over two frames, the front none
     readings = [(0, 8000, 0.003, 0.1), (0, 2000, 0.004, 0.2), (1, 4000, 0.0, -0.3)]
     assert red_balance(readings) == (1.0, 2)
     assert red_balance([(1 - k, p, s, c) for k, p, s, c in readings])[0] == -1.0
-    assert red_balance([(0, 1000, 0.010, 0.0), (1, 1000, 0.008, 0.0)])[0] == 0.0  # 10 against 8: no winner
-    assert red_balance([(0, 1000, (MIN_RED_PIXELS - 1) / 1000, 0.0)])[0] == 0.0  # too few to tell
+    # an end seen head-on shows more red pixels, not a larger share of red: no winner
+    assert red_balance([(0, 5000, 0.003, 0.9), (1, 1500, 0.003, -0.9)])[0] == 0.0
+    assert red_balance([(0, 1000, 0.010, 0.0), (1, 1000, 0.008, 0.0)])[0] == 0.0
+    assert red_balance([(0, 1000, (MIN_RED_PIXELS - 1) / 1000, 0.0), (1, 1000, 0.0, 0.0)])[0] == 0.0
+    assert red_balance([(0, 5000, 0.004, 0.0)])[0] == 0.0  # the other end was never seen
     assert red_balance([(0, 1000, 0.5, 0.0), (1, 1000, 0.0, 0.0)]) == (0.0, 0)  # red paint is not a lamp
 
 

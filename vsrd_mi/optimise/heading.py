@@ -18,7 +18,8 @@ the box (its rear or front fifth) looks lamped when a lamp's share of its visibl
 (:func:`lamp_evidence`); where the lamped ends agree on which is the rear, the lamps decide, before
 the silhouettes (a red car's paint covers most of both ends and leaves it to them). Where no end
 looks lamped, a rear lamp seen from the side or from afar still shows a few red pixels, and a front
-none: the end with clearly more lamp red over all frames is the rear (:func:`red_balance`). The same
+none: of two ends both seen, the one whose pixels are clearly more often lamp red over all frames
+is the rear (:func:`red_balance`). The same
 reading says more: every car's rear carries red lamps, so an end seen nearly head-on, large enough
 to show them, and without any red is its front (:func:`bare_end_evidence`: a car seen only from
 the front). Bare ends are the weakest cue (a rear too far or too dark to show red, or a box whose
@@ -59,7 +60,7 @@ LAMP_SHARE = (0.01, 0.3)
 #: Red balance: over all frames, the end with at least this many lamp-red pixels (a lamp seen edge-on
 #: or far: a few pixels) ...
 MIN_RED_PIXELS = 3
-#: ... and at least this many times the other end's is the rear (evidence 1/3 or more).
+#: ... and a red share at least this many times the other end's is the rear (evidence 1/3 or more).
 RED_DOMINANCE = 2.0
 #: An end takes part in a frame when at least this many of its pixels are visible.
 MIN_END_PIXELS = 30
@@ -225,19 +226,25 @@ def lamp_votes(readings: list[Reading]) -> tuple[float, int]:
 
 
 def red_balance(readings: list[Reading]) -> tuple[float, int]:
-    """``(evidence, views)`` of the lamp-red pixels each end shows over :func:`end_readings`'
-    readings (ends redder than :data:`LAMP_SHARE` allows, i.e. red paint, left out): with ``r``
-    red pixels at the rear and ``f`` at the front, ``(r - f) / (r + f)`` when the larger is at
-    least :data:`MIN_RED_PIXELS` and :data:`RED_DOMINANCE` times the smaller, else 0 (positive:
-    the box faces its yaw); ``views`` counts the readings with any lamp red."""
-    red = [0.0, 0.0]
+    """``(evidence, views)`` of the lamp red each end shows over :func:`end_readings`' readings
+    (ends redder than :data:`LAMP_SHARE` allows, i.e. red paint, left out). Per end the red share
+    of all its visible pixels is pooled over the frames: with shares ``r`` at the rear and ``f`` at
+    the front, ``(r - f) / (r + f)`` when both ends were seen, the redder one shows at least
+    :data:`MIN_RED_PIXELS` red pixels and its share is at least :data:`RED_DOMINANCE` times the
+    other's, else 0 (positive: the box faces its yaw). Shares, not pixel counts: an end seen
+    head-on shows more of everything, stray reddish pixels too, than the far end. ``views`` counts
+    the readings with any lamp red."""
+    red, pixels = [0.0, 0.0], [0, 0]
     views = 0
-    for k, pixels, share, _ in readings:
+    for k, count, share, _ in readings:
         if share <= LAMP_SHARE[1]:
-            red[k] += share * pixels
+            red[k] += share * count
+            pixels[k] += count
             views += share > 0
-    rear, front = red
-    if max(rear, front) < MIN_RED_PIXELS or max(rear, front) < RED_DOMINANCE * min(rear, front):
+    if min(pixels) == 0:
+        return 0.0, views
+    rear, front = red[0] / pixels[0], red[1] / pixels[1]
+    if max(red) < MIN_RED_PIXELS or max(rear, front) < RED_DOMINANCE * min(rear, front):
         return 0.0, views
     return (rear - front) / (rear + front), views
 
