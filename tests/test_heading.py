@@ -260,6 +260,8 @@ def test_red_balance_compares_the_ends_red_shares():
     assert red_balance([(0, 1000, 0.010, 0.0), (1, 1000, 0.008, 0.0)])[0] == 0.0
     assert red_balance([(0, 1000, (MIN_RED_PIXELS - 1) / 1000, 0.0), (1, 1000, 0.0, 0.0)])[0] == 0.0
     assert red_balance([(0, 5000, 0.004, 0.0)])[0] == 0.0  # the other end was never seen
+    # the redder end by share must show the red pixels itself: 2 red of 100 against 4 of 4000
+    assert red_balance([(0, 100, 0.02, 0.0), (1, 4000, 0.001, 0.0)])[0] == 0.0
     assert red_balance([(0, 1000, 0.5, 0.0), (1, 1000, 0.0, 0.0)]) == (0.0, 0)  # red paint is not a lamp
 
 

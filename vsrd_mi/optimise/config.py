@@ -352,9 +352,10 @@ class HeadingConfig:
     min_mask_pixels: int = 200
     #: Look at the lamps' colour too (red at the rear; :func:`vsrd_mi.optimise.heading.lamp_evidence`).
     lamps: bool = True
-    #: Where no end looks lamped, the end showing clearly more lamp red over the frames is the
-    #: rear ("red balance", :func:`vsrd_mi.optimise.heading.red_balance_evidence`): a rear lamp seen
-    #: from the side or from afar covers less than a lamp's share of the end but is still red.
+    #: Where no end looks lamped, of two ends both seen the one whose pixels are clearly more often
+    #: lamp red over the frames is the rear ("red balance", :func:`vsrd_mi.optimise.heading.red_balance`):
+    #: a rear lamp seen from the side or from afar covers less than a lamp's share of the end but
+    #: is still red.
     red_balance: bool = True
     #: Where neither the lamps nor the silhouettes decide, an end seen head-on without red is a
     #: front ("bare ends", :func:`vsrd_mi.optimise.heading.bare_end_evidence`).

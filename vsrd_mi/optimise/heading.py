@@ -244,7 +244,8 @@ def red_balance(readings: list[Reading]) -> tuple[float, int]:
     if min(pixels) == 0:
         return 0.0, views
     rear, front = red[0] / pixels[0], red[1] / pixels[1]
-    if max(red) < MIN_RED_PIXELS or max(rear, front) < RED_DOMINANCE * min(rear, front):
+    redder = 0 if rear >= front else 1
+    if red[redder] < MIN_RED_PIXELS or max(rear, front) < RED_DOMINANCE * min(rear, front):
         return 0.0, views
     return (rear - front) / (rear + front), views
 
