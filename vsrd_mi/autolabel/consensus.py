@@ -24,8 +24,9 @@ frame and fused:
 * the fused box: component-wise weighted median of the fused boxes' centres and sizes, and their
   weighted mean axis ``yaw = arg(sum_k w_k exp(2 i yaw_k)) / 2`` (period pi: a box turned end for
   end is the same box);
-  its front is where the fused boxes' heading evidence (:mod:`vsrd_mi.optimise.heading`: silhouettes
-  front against back, summed over the targets) points when that sum exceeds the evidence
+  its front is where the fused boxes' heading evidence (:mod:`vsrd_mi.optimise.heading`: each
+  target's deciding cue, lamps, red balance, silhouettes or bare ends, for its box's own front;
+  summed over the targets) points when that sum exceeds the evidence
   threshold, else where most inliers face (a tie: the first inlier).
 
 The fused box replaces every inlier's box in the labels of that inlier's group; its score is the
@@ -69,7 +70,7 @@ class TargetBoxes:
     #: Boxes in the target's optimisation frame (:func:`vsrd_mi.data.observations.opt_from_world`).
     boxes: tuple[Box3D, ...]
     confidences: tuple[float, ...]
-    #: Per box, the silhouettes' evidence for the box's own front over its back (0 when none).
+    #: Per box, its heading decision's evidence for the box's own front over its back (0 when none).
     heading_evidence: tuple[float, ...] = ()
 
     @staticmethod

@@ -1,4 +1,4 @@
-"""Which way a parked car faces: the evidence of its silhouettes, front against back.
+"""Which way a parked car faces: the evidence of its lamps and silhouettes, front against back.
 
 The box optimisation fixes a parked car's axis but not its front: a box turned end for end
 renders the same silhouette and projects to the same 2D boxes. A car's silhouette is not
@@ -19,7 +19,7 @@ the box (its rear or front fifth) looks lamped when a lamp's share of its visibl
 the silhouettes (a red car's paint covers most of both ends and leaves it to them). Where no end
 looks lamped, a rear lamp seen from the side or from afar still shows a few red pixels, and a front
 none: of two ends both seen, the one whose pixels are clearly more often lamp red over all frames
-is the rear (:func:`red_balance`). The same
+is the rear (:func:`red_balance`, also before the silhouettes). The same
 reading says more: every car's rear carries red lamps, so an end seen nearly head-on, large enough
 to show them, and without any red is its front (:func:`bare_end_evidence`: a car seen only from
 the front). Bare ends are the weakest cue (a rear too far or too dark to show red, or a box whose
