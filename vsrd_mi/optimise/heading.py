@@ -275,11 +275,16 @@ def bare_end_evidence(box: Box3D, n: int, obs: Observations, images: list[np.nda
     return bare_end_votes(end_readings(box, n, obs, images, min_mask_pixels))
 
 
+def _decided(box: Box3D, evidence: float, views: int, source: str) -> HeadingDecision:
+    """The decision of a cue whose signed ``evidence`` is for the box's own front: turned when negative."""
+    return HeadingDecision(turned(box) if evidence < 0 else box, float(evidence), views, source, bool(evidence < 0))
+
+
 def _vote_decision(box: Box3D, votes: tuple[float, int], source: str, cfg: HeadingConfig) -> HeadingDecision | None:
     """The decision of a colour cue's votes, or None when too few views or too weak a majority."""
     evidence, seen = votes
     if seen >= cfg.min_lamp_views and abs(evidence) >= cfg.min_lamp_evidence:
-        return HeadingDecision(turned(box) if evidence < 0 else box, float(evidence), seen, source, bool(evidence < 0))
+        return _decided(box, evidence, seen, source)
     return None
 
 
@@ -295,12 +300,11 @@ def decide_heading(box: Box3D, n: int, obs: Observations, cfg: HeadingConfig,
     if readings and cfg.red_balance:
         evidence, seen = red_balance(readings)
         if evidence != 0.0:
-            return HeadingDecision(turned(box) if evidence < 0 else box, evidence, seen, "red balance",
-                                   bool(evidence < 0))
+            return _decided(box, evidence, seen, "red balance")
     fwd, bwd, views = heading_scores(box, n, obs, min_mask_pixels=cfg.min_mask_pixels)
     evidence = fwd - bwd
     if abs(evidence) > cfg.min_evidence:
-        return HeadingDecision(turned(box) if evidence < 0 else box, evidence, views, "silhouette", bool(evidence < 0))
+        return _decided(box, evidence, views, "silhouette")
     if readings and cfg.bare_ends and (decision := _vote_decision(box, bare_end_votes(readings), "bare ends", cfg)):
         return decision
     faces = prior_faces_yaw(box, cfg.prior)
