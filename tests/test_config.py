@@ -112,3 +112,10 @@ def test_the_stereo_initialisation_is_part_of_the_config():
 def test_bad_overrides_name_the_key(item, message):
     with pytest.raises(ValueError, match=message):
         default_config().with_overrides([item])
+
+
+def test_init_anchor_takes_its_two_choices_and_refuses_others_naming_it():
+    assert default_config().weights.init_anchor == "seen_faces"
+    assert default_config().with_overrides(["weights.init_anchor=centre"]).weights.init_anchor == "centre"
+    with pytest.raises(ValueError, match="weights.init_anchor must be one of"):
+        default_config().with_overrides(["weights.init_anchor=corner"])

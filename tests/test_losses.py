@@ -489,6 +489,72 @@ def test_init_loss_is_the_l1_sum_per_box():
     assert got == pytest.approx((0.1 * 1.75 + 20.0 * (2.125 + 0.2)) / 2, abs=1e-3)
 
 
+def test_seen_face_normals_name_the_faces_the_camera_sees():
+    """A box ahead and to the left, along z: the camera sees its right side (+x) and its near end
+    (-z); a box straight ahead shows only its near end; yaw 90 degrees swaps the axes."""
+    centres = np.array([[-4.0, 0.8, 12.0], [0.0, 0.8, 12.0], [-6.0, 0.8, 12.0]])
+    sizes = np.array([[1.8, 1.5, 4.3]] * 3)
+    n = losses.seen_face_normals(centres, sizes, np.array([0.0, 0.0, np.pi / 2]))
+    np.testing.assert_allclose(n[0], [1.0, 0.0, 0.0, -1.0], atol=1e-12)
+    np.testing.assert_allclose(n[1], [0.0, 0.0, 0.0, -1.0], atol=1e-12)
+    # yaw 90: the length runs along +x (local z = (sin, cos) = (1, 0)), the width along -z
+    np.testing.assert_allclose(n[2], [0.0, -1.0, 1.0, 0.0], atol=1e-12)
+    # exact geometry: each named face's centre is nearer the camera than the opposite face's
+    for c, size, yaw, normal in zip(centres, sizes, (0.0, 0.0, np.pi / 2), n):
+        for k, half in ((0, size[0] / 2), (2, size[2] / 2)):
+            v = normal[k:k + 2]
+            if np.any(v):
+                near, far = c[[0, 2]] + half * v, c[[0, 2]] - half * v
+                assert np.linalg.norm(near) < np.linalg.norm(far)
+
+
+def test_face_anchor_lets_a_box_grow_away_from_its_seen_faces():
+    """Holding the seen faces: a box lengthened and widened away from the camera (centre moved
+    by half the growth) costs nothing; the same growth about the centre costs the faces' shift;
+    the side inset asks for the side face that far beyond the initial one."""
+    centre, size = np.array([[-4.0, 0.8, 12.0]]), np.array([[1.8, 1.5, 4.3]])
+    normals = losses.seen_face_normals(centre, size, np.zeros(1))   # side +x, end -z
+    grow_w, grow_l = 0.2, 0.6
+
+    def anchor_at(c, s, inset=0.0):
+        field = field_of(c, s, np.zeros(1))
+        anchor = losses.InitAnchor(centre, None, None, np.ones(1), face_normals=normals,
+                                   init_half=0.5 * size, side_inset=inset)
+        return values(anchor.loss(field.decode()))[0]
+
+    assert anchor_at(centre, size) == pytest.approx(0.0, abs=1e-5)
+    grown = size + np.array([[grow_w, 0.0, grow_l]])
+    away = centre + np.array([[-grow_w / 2, 0.0, grow_l / 2]])   # away from the +x side and the -z end
+    assert anchor_at(away, grown) == pytest.approx(0.0, abs=1e-5)
+    assert anchor_at(centre, grown) == pytest.approx(grow_w / 2 + grow_l / 2, abs=1e-5)
+    # inset 0.1: the side face 0.1 beyond the initial one (centre 0.1 further out along +x) is free
+    inset = 0.1
+    assert anchor_at(centre, size, inset) == pytest.approx(inset, abs=1e-5)
+    assert anchor_at(centre + np.array([[inset, 0.0, 0.0]]), size, inset) == pytest.approx(0.0, abs=1e-5)
+
+
+def test_face_anchor_gradients_match_finite_differences():
+    field = field_of(np.array([[-4.0, 0.3, 12.0], [2.5, 0.4, 20.0]]), np.array([[1.9, 1.5, 4.3], [1.7, 1.4, 3.9]]),
+                     np.array([0.3, -1.0]))
+    b = field.boxes()
+    c_init = b["centre"] + np.array([[0.3, -0.2, 0.5], [-0.1, 0.15, -0.4]])   # no coordinate at its kink
+    s_init = b["size"] + np.array([[0.2, 0.0, -0.3], [0.1, 0.0, 0.35]])
+    normals = losses.seen_face_normals(c_init, s_init, b["yaw"])
+    assert np.all(np.abs(normals).sum(axis=1) > 0)
+    anchor = losses.InitAnchor(c_init, None, None, np.array([2.0, 2.0]), face_normals=normals,
+                               init_half=0.5 * s_init, side_inset=0.12)
+    keys = ("centre", "size")
+    ad, fd = ad_and_central_differences(field, keys, anchor.loss, {k: 1e-3 for k in keys})
+    for key in keys:
+        np.testing.assert_allclose(ad[key], fd[key], rtol=1e-2, atol=1e-3, err_msg=key)
+    assert np.abs(ad["size"]).max() > 0.1   # the faces move with the size
+
+
+def test_face_anchor_needs_the_initial_half_extents():
+    with pytest.raises(ValueError, match="init_half"):
+        losses.InitAnchor(np.zeros((1, 3)), None, None, face_normals=np.zeros((1, 4)))
+
+
 def test_shape_prior_is_size_l1_plus_yaw_sin_squared_per_box():
     sizes = np.array([[1.9, 1.5, 4.3], [1.7, 1.4, 3.9]])
     field = field_of(np.array([[0.5, 0.2, 10.0], [-3.0, 0.4, 16.0]]), sizes, np.array([0.3, -1.0]))
@@ -942,7 +1008,9 @@ def test_frozen_box_step_matches_the_traced_step(scene):
 
 def test_shape_prior_enters_the_init_term_with_the_initial_boxes(scene):
     """Start at the ground truth; the initialisation is 0.5 m longer and turned by 30 degrees:
-    at step 0 the init term is the prior alone, ``2 * 0.5 + 2 * sin^2(30 deg) = 1.5`` per box."""
+    at step 0 the init term is the prior alone, ``2 * 0.5 + 2 * sin^2(30 deg) = 1.5`` per box (the
+    anchor holds the centres, which start at the initial ones; a face anchor would hold the faces
+    of the longer, turned initial boxes)."""
     obs, gt = scene
     init = [Box3D(b.centre, b.size + np.array([0.0, 0.0, 0.5]), b.yaw + math.pi / 6, b.velocity, b.dynamic,
                   b.instance_id) for b in gt]
@@ -951,7 +1019,8 @@ def test_shape_prior_enters_the_init_term_with_the_initial_boxes(scene):
     for w, w_dyn, expected in ((2.0, 2.0, 1.5), (0.0, 0.0, 0.0), (2.0, 0.0, 1.5 * (~moving).mean())):
         cfg = quick(residual=False, steps=1)
         cfg = cfg.replace(weights=dataclasses.replace(cfg.weights, init_size=w, init_yaw=w, init_size_dynamic=w_dyn,
-                                                      init_yaw_dynamic=w_dyn, width_prior=0.0))
+                                                      init_yaw_dynamic=w_dyn, width_prior=0.0,
+                                                      init_anchor="centre"))
         result = BoxOptimiser(obs, gt, cfg, init_boxes=init).run()
         assert result.loss_history["init"][0] == pytest.approx(expected, abs=2e-3), (w, w_dyn)
 

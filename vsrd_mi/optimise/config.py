@@ -18,6 +18,8 @@ from ..init.config import InitConfig
 
 #: Forms of the projection loss (see :func:`vsrd_mi.optimise.losses.projection_loss`).
 PROJECTION_MODES = ("symmetric", "containment")
+#: What the init regulariser holds of a parked box (``LossWeights.init_anchor``).
+INIT_ANCHORS = ("centre", "seen_faces")
 #: Largest ``CarProfile.overhang`` (share of the length at each end): the wheel part keeps 0.4 of it.
 MAX_OVERHANG_SHARE = 0.3
 
@@ -47,6 +49,19 @@ class LossWeights:
     #: projection loss along the line of sight; 2 held such cars where 0.1 let a van drift 2.3 m
     #: and 20 kept the stereo start's own range error (docs/autolabel.md).
     init: float = 2.0
+    #: What the init anchor holds of a parked box: ``"centre"`` (the paper) or ``"seen_faces"``.
+    #: The initial centre lies half an *assumed* size behind the faces the stereo cloud measured
+    #: (the 4.3 m length floor where the far end is unseen), so a centre anchor makes a box that
+    #: the masks lengthen grow towards the camera as much as away from it. ``seen_faces`` holds,
+    #: horizontally, the middle of the side and end faces the target camera sees
+    #: (:func:`vsrd_mi.optimise.losses.seen_face_normals`), the side face taken
+    #: ``CarProfile.mirror`` inside the box: a cloud shows the body's side, and the tight box's
+    #: side lies the mirrors' span beyond it. Moving cars keep the centre (their footprints are
+    #: fitted at the median depth of a smeared cloud, not at the faces). Development parked
+    #: cars (4 targets per street): centre 0.777, seen faces without the inset 0.779, with it
+    #: 0.784; development-traffic 0.745 / 0.756 / 0.758; validation 0.735 -> 0.747
+    #: (docs/accuracy.md).
+    init_anchor: str = "seen_faces"
     #: Init regulariser weight of moving cars. A car moving at constant velocity seen from a camera
     #: moving at constant velocity has no depth in its images (its offset, relative velocity and
     #: size scale together), so stereo must outweigh the pixel-scale losses: 0.1 (the paper) left
@@ -122,6 +137,8 @@ class LossWeights:
     bce_eps: float = 1e-6
 
     def __post_init__(self) -> None:
+        if self.init_anchor not in INIT_ANCHORS:
+            raise ValueError(f"weights.init_anchor must be one of {INIT_ANCHORS}, got {self.init_anchor!r}")
         if self.projection_mode not in PROJECTION_MODES:
             raise ValueError(f"projection_mode must be one of {PROJECTION_MODES}, got {self.projection_mode!r}")
 

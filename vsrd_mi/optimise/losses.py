@@ -247,18 +247,68 @@ def silhouette_loss(labels: list, targets: list, eps: float) -> mi.Float:
     return total / max(len(labels), 1)
 
 
+def seen_face_normals(centre: np.ndarray, size: np.ndarray, yaw: np.ndarray,
+                      camera: np.ndarray | None = None) -> np.ndarray:
+    """Outward horizontal normals of the side and end faces of each box that ``camera`` sees.
+
+    ``centre`` (N, 3), ``size`` (N, 3) as (w, h, l) and ``yaw`` (N,) in the optimisation frame;
+    ``camera`` (3,) defaults to its origin, the target camera. Returns (N, 4):
+    ``(side_x, side_z, end_x, end_z)``, the unit normal in the x-z plane of the side face (width
+    axis) and of the end face (length axis) facing the camera, or zeros for an axis whose two
+    faces the camera cannot see (it lies within the box's extent along that axis).
+    """
+    centre, size = np.atleast_2d(centre).astype(float), np.atleast_2d(size).astype(float)
+    yaw = np.atleast_1d(np.asarray(yaw, dtype=float))
+    cam = np.zeros(3) if camera is None else np.asarray(camera, dtype=float)
+    c, s = np.cos(yaw), np.sin(yaw)
+    dx, dz = cam[0] - centre[:, 0], cam[2] - centre[:, 2]
+    local_w, local_l = c * dx - s * dz, s * dx + c * dz   # the camera in box coordinates
+    side = np.where(np.abs(local_w) > 0.5 * size[:, 0], np.sign(local_w), 0.0)
+    end = np.where(np.abs(local_l) > 0.5 * size[:, 2], np.sign(local_l), 0.0)
+    # box-local unit x (width) is (c, -s) in the frame's (x, z), local z (length) is (s, c)
+    return np.stack([side * c, -side * s, end * s, end * c], axis=1)
+
+
+def face_anchor_point(centre: list, half: list, normals: list, side_inset) -> tuple:
+    """``(x, z)`` of the point an init anchor holds: ``centre`` moved by the half extents onto
+    the faces whose outward ``normals`` ``(side_x, side_z, end_x, end_z)`` are given (zero
+    normals leave that axis at the centre), the side face taken ``side_inset`` metres inside the
+    box. Arithmetic only: NumPy arrays and Dr.Jit arrays alike (the one formula of both)."""
+    side = half[0] - side_inset
+    return (centre[0] + normals[0] * side + normals[2] * half[2],
+            centre[2] + normals[1] * side + normals[3] * half[2])
+
+
 class InitAnchor:
     """The init regulariser's constants as Dr.Jit arrays, converted once per optimisation:
     initial centres ``centre_init`` (N, 3), velocities ``velocity_init`` (N, 3) or None (no
     velocity term), the mask of boxes whose velocity counts ``velocity_mask`` (N,) and weights
-    ``box_weights`` (N,) or None (all 1). :meth:`loss` is :func:`init_loss`."""
+    ``box_weights`` (N,) or None (all 1). :meth:`loss` is :func:`init_loss`.
 
-    DRJIT_STRUCT = {"centre": list, "w": mi.Float, "velocity": object, "mask": object}
+    With ``face_normals`` (N, 4; :func:`seen_face_normals`) the anchor holds, horizontally, the
+    point of each box on the faces those normals name instead of its centre
+    (:func:`face_anchor_point`): initially ``init_half`` (N, 3) from the centre, at the faces as
+    the stereo cloud placed them, and during the optimisation ``side_inset`` metres nearer the
+    centre on the side face. A box then grows away from the faces its cloud measured; boxes
+    with zero normals keep the plain centre anchor.
+    """
+
+    DRJIT_STRUCT = {"centre": list, "w": mi.Float, "velocity": object, "mask": object, "normals": object}
 
     def __init__(self, centre_init: np.ndarray, velocity_init: np.ndarray | None,
-                 velocity_mask: np.ndarray | None, box_weights: np.ndarray | None = None):
+                 velocity_mask: np.ndarray | None, box_weights: np.ndarray | None = None,
+                 face_normals: np.ndarray | None = None, init_half: np.ndarray | None = None,
+                 side_inset: float = 0.0):
         n = self.count = len(centre_init)
-        self.centre = [to_float(np.asarray(centre_init)[:, j]) for j in range(3)]
+        target = np.array(centre_init, dtype=np.float64).reshape(n, 3)
+        self.normals, self.side_inset = None, float(side_inset)
+        if face_normals is not None:
+            if init_half is None:
+                raise ValueError("InitAnchor: face_normals need init_half, the initial half extents")
+            normals, half = np.asarray(face_normals, dtype=np.float64), np.asarray(init_half, dtype=np.float64)
+            target[:, 0], target[:, 2] = face_anchor_point(list(target.T), list(half.T), list(normals.T), 0.0)
+            self.normals = [to_float(normals[:, j]) for j in range(4)]
+        self.centre = [to_float(target[:, j]) for j in range(3)]
         self.w = to_float(np.ones(n) if box_weights is None else box_weights)
         self.velocity = self.mask = None
         if velocity_init is not None:
@@ -266,10 +316,14 @@ class InitAnchor:
             self.mask = to_float(np.ones(n) if velocity_mask is None else velocity_mask)
 
     def loss(self, dec: DecodedBoxes) -> mi.Float:
-        """``sum_n w_n (|l_n - l_init|_1 + m_n |v_n - v_init|_1) / N``."""
+        """``sum_n w_n (|p_n - p_init|_1 + m_n |v_n - v_init|_1) / N``, ``p`` the centre or,
+        with face normals, the face point (horizontally) and the centre's height."""
+        point = list(dec.centre)
+        if self.normals is not None:
+            point[0], point[2] = face_anchor_point(point, dec.half, self.normals, self.side_inset)
         per_box = dr.zeros(mi.Float, self.count)
         for j in range(3):
-            per_box = per_box + dr.abs(dec.centre[j] - self.centre[j])
+            per_box = per_box + dr.abs(point[j] - self.centre[j])
             if self.velocity is not None:
                 per_box = per_box + self.mask * dr.abs(dec.velocity[j] - self.velocity[j])
         return dr.sum(self.w * per_box) / max(self.count, 1)
