@@ -494,7 +494,7 @@ def test_seen_face_normals_name_the_faces_the_camera_sees():
     (-z); a box straight ahead shows only its near end; yaw 90 degrees swaps the axes."""
     centres = np.array([[-4.0, 0.8, 12.0], [0.0, 0.8, 12.0], [-6.0, 0.8, 12.0]])
     sizes = np.array([[1.8, 1.5, 4.3]] * 3)
-    n = losses.seen_face_normals(centres, sizes, np.array([0.0, 0.0, np.pi / 2]))
+    n = losses.seen_face_normals([Box3D(c, sz, y) for c, sz, y in zip(centres, sizes, (0.0, 0.0, np.pi / 2))])
     np.testing.assert_allclose(n[0], [1.0, 0.0, 0.0, -1.0], atol=1e-12)
     np.testing.assert_allclose(n[1], [0.0, 0.0, 0.0, -1.0], atol=1e-12)
     # yaw 90: the length runs along +x (local z = (sin, cos) = (1, 0)), the width along -z
@@ -513,7 +513,7 @@ def test_face_anchor_lets_a_box_grow_away_from_its_seen_faces():
     by half the growth) costs nothing; the same growth about the centre costs the faces' shift;
     the side inset asks for the side face that far beyond the initial one."""
     centre, size = np.array([[-4.0, 0.8, 12.0]]), np.array([[1.8, 1.5, 4.3]])
-    normals = losses.seen_face_normals(centre, size, np.zeros(1))   # side +x, end -z
+    normals = losses.seen_face_normals([Box3D(centre[0], size[0], 0.0)])   # side +x, end -z
     grow_w, grow_l = 0.2, 0.6
 
     def anchor_at(c, s, inset=0.0):
@@ -539,7 +539,7 @@ def test_face_anchor_gradients_match_finite_differences():
     b = field.boxes()
     c_init = b["centre"] + np.array([[0.3, -0.2, 0.5], [-0.1, 0.15, -0.4]])   # no coordinate at its kink
     s_init = b["size"] + np.array([[0.2, 0.0, -0.3], [0.1, 0.0, 0.35]])
-    normals = losses.seen_face_normals(c_init, s_init, b["yaw"])
+    normals = losses.seen_face_normals([Box3D(c, sz, y) for c, sz, y in zip(c_init, s_init, b["yaw"])])
     assert np.all(np.abs(normals).sum(axis=1) > 0)
     anchor = losses.InitAnchor(c_init, None, None, np.array([2.0, 2.0]), face_normals=normals,
                                init_half=0.5 * s_init, side_inset=0.12)

@@ -15,7 +15,7 @@ import numpy as np
 from vsrd_plugins.sdf import DecodedBoxes, InstanceField, box_sdf_local
 
 from ..geometry import boxes2d
-from ..geometry.boxes import CORNER_SIGNS
+from ..geometry.boxes import CORNER_SIGNS, Box3D
 from ..geometry.camera import NEAR_PLANE, footprint
 from ..geometry.surface import footprint_ray_residuals, quantile_soft_l1, range_quantile
 from ..geometry.vehicle_sizes import tight_width
@@ -247,26 +247,23 @@ def silhouette_loss(labels: list, targets: list, eps: float) -> mi.Float:
     return total / max(len(labels), 1)
 
 
-def seen_face_normals(centre: np.ndarray, size: np.ndarray, yaw: np.ndarray,
-                      camera: np.ndarray | None = None) -> np.ndarray:
+def seen_face_normals(boxes: list[Box3D], camera: np.ndarray | None = None) -> np.ndarray:
     """Outward horizontal normals of the side and end faces of each box that ``camera`` sees.
 
-    ``centre`` (N, 3), ``size`` (N, 3) as (w, h, l) and ``yaw`` (N,) in the optimisation frame;
-    ``camera`` (3,) defaults to its origin, the target camera. Returns (N, 4):
-    ``(side_x, side_z, end_x, end_z)``, the unit normal in the x-z plane of the side face (width
-    axis) and of the end face (length axis) facing the camera, or zeros for an axis whose two
-    faces the camera cannot see (it lies within the box's extent along that axis).
+    ``camera`` (3,) is a point in the boxes' frame, by default its origin (the target camera of
+    the optimisation frame). Returns (N, 4): ``(side_x, side_z, end_x, end_z)``, the unit normal
+    in the x-z plane of the side face (width axis) and of the end face (length axis) facing the
+    camera, or zeros for an axis whose two faces the camera cannot see (it lies within the box's
+    extent along that axis).
     """
-    centre, size = np.atleast_2d(centre).astype(float), np.atleast_2d(size).astype(float)
-    yaw = np.atleast_1d(np.asarray(yaw, dtype=float))
-    cam = np.zeros(3) if camera is None else np.asarray(camera, dtype=float)
-    c, s = np.cos(yaw), np.sin(yaw)
-    dx, dz = cam[0] - centre[:, 0], cam[2] - centre[:, 2]
-    local_w, local_l = c * dx - s * dz, s * dx + c * dz   # the camera in box coordinates
-    side = np.where(np.abs(local_w) > 0.5 * size[:, 0], np.sign(local_w), 0.0)
-    end = np.where(np.abs(local_l) > 0.5 * size[:, 2], np.sign(local_l), 0.0)
-    # box-local unit x (width) is (c, -s) in the frame's (x, z), local z (length) is (s, c)
-    return np.stack([side * c, -side * s, end * s, end * c], axis=1)
+    cam = np.zeros(3) if camera is None else np.asarray(camera, dtype=np.float64)
+    normals = np.zeros((len(boxes), 4))
+    for i, b in enumerate(boxes):
+        local = b.rotation.T @ (cam - b.centre)   # the camera in box coordinates (x width, z length)
+        for k, axis in ((0, 0), (2, 2)):
+            if abs(local[axis]) > 0.5 * b.size[axis]:
+                normals[i, k:k + 2] = np.sign(local[axis]) * b.rotation[[0, 2], axis]
+    return normals
 
 
 def face_anchor_point(centre: list, half: list, normals: list, side_inset) -> tuple:

@@ -371,19 +371,18 @@ class BoxOptimiser:
         anchor = prior = None
         init_weights = np.where(self.dynamic, w.init_dynamic, w.init)
         if self.init_boxes is not None:
+            sizes, yaws = np.stack([b.size for b in self.init_boxes]), np.array([b.yaw for b in self.init_boxes])
             if np.any(init_weights > 0):
-                centres = np.stack([b.centre for b in self.init_boxes])
-                sizes = np.stack([b.size for b in self.init_boxes])
                 normals = None
                 if w.init_anchor == "seen_faces":  # parked boxes only; moving ones keep the centre
-                    normals = losses.seen_face_normals(centres, sizes, np.array([b.yaw for b in self.init_boxes]))
+                    normals = losses.seen_face_normals(self.init_boxes)
                     normals[self.dynamic] = 0.0
-                anchor = losses.InitAnchor(centres, np.stack([b.velocity for b in self.init_boxes])
+                anchor = losses.InitAnchor(np.stack([b.centre for b in self.init_boxes]),
+                                           np.stack([b.velocity for b in self.init_boxes])
                                            if velocity else None, self.dynamic, init_weights,
                                            face_normals=normals, init_half=0.5 * sizes,
                                            side_inset=self.cfg.car_profile.mirror)
-            prior = losses.ShapePrior(np.stack([b.size for b in self.init_boxes]),
-                                      np.array([b.yaw for b in self.init_boxes]),
+            prior = losses.ShapePrior(sizes, yaws,
                                       np.where(self.dynamic, w.init_size_dynamic, w.init_size),
                                       np.where(self.dynamic, w.init_yaw_dynamic, w.init_yaw))
             if not prior.active:
