@@ -7,11 +7,11 @@ import pytest
 
 from vsrd_mi.batch.tasks import TargetTask
 from vsrd_mi.init.config import InitConfig
-from vsrd_mi.optimise.config import (LONG_SCHEDULE_SHAPE_PRIOR, PAPER_SILHOUETTE_WEIGHT, AutolabelConfig, CarProfile,
-                                     LossWeights, default_config, paper_config)
+from vsrd_mi.optimise.config import (LONG_SCHEDULE_SHAPE_PRIOR, PAPER_LR_DECAY, PAPER_SILHOUETTE_WEIGHT, AutolabelConfig,
+                                     CarProfile, LossWeights, default_config, paper_config)
 
 
-def test_presets_differ_in_budget_the_silhouette_term_and_the_long_schedules_shape_prior_only():
+def test_presets_differ_in_budget_lr_decay_the_silhouette_term_and_the_long_schedules_shape_prior_only():
     d, p = default_config(), paper_config()
     assert (p.steps, p.warmup_steps, p.rays_per_step, p.sampling) == (3000, 1000, 1000, "dense")
     assert not p.early_stop.enabled and d.early_stop.enabled
@@ -26,6 +26,9 @@ def test_presets_differ_in_budget_the_silhouette_term_and_the_long_schedules_sha
     # nothing else differs
     assert dataclasses.replace(p.weights, silhouette=0.0, **{k: 0.0 for k in prior}) == d.weights
     assert p.car_profile == d.car_profile == CarProfile() and d.car_profile.enabled
+    # the paper decays its rates by 0.01 over 3000 steps; the default's 600 steps decay less
+    assert p.lr.decay == PAPER_LR_DECAY == 0.01 < d.lr.decay
+    assert dataclasses.replace(p.lr, decay=d.lr.decay) == d.lr
 
 
 def test_overrides_set_nested_and_top_level_fields():
