@@ -19,7 +19,7 @@ from scipy.optimize import least_squares
 from scipy.spatial import cKDTree
 from scipy.special import ndtr, stdtrit
 
-from ..geometry.boxes import Box3D, wrap_angle, yaw_from_direction
+from ..geometry.boxes import Box3D, wrap_angle, yaw_from_direction, yaw_matrix
 from ..geometry.surface import footprint_ray_residuals, quantile_soft_l1, range_quantile
 from .config import FootprintConfig, InitConfig, OrientationConfig, VelocityConfig
 from .depth import bounding_region, depth_to_disparity, make_depth_source, matching_region, stereo_depth_in
@@ -340,10 +340,11 @@ def merged_cloud(clouds: dict[int, np.ndarray], cameras: dict[int, np.ndarray], 
 # Orientation
 # --------------------------------------------------------------------------------------------
 
-def _axes(yaw: np.ndarray | float) -> tuple[np.ndarray, np.ndarray]:
-    """Horizontal (x, z) components of the length axis and the width axis of a box with ``yaw``."""
-    s, c = np.sin(yaw), np.cos(yaw)
-    return np.stack([s, c], -1), np.stack([c, -s], -1)
+def _axes(yaw: float) -> tuple[np.ndarray, np.ndarray]:
+    """Horizontal (x, z) components of the length axis and the width axis of a box with ``yaw``
+    (the columns of :func:`vsrd_mi.geometry.boxes.yaw_matrix` for local z and x)."""
+    rotation = yaw_matrix(yaw)
+    return rotation[[0, 2], 2], rotation[[0, 2], 0]
 
 
 def _edge_extents(xz: np.ndarray, psi: float, percentile: float) -> list[tuple[float, float]]:

@@ -20,8 +20,10 @@ from ..init.config import InitConfig
 PROJECTION_MODES = ("symmetric", "containment")
 #: What the init regulariser holds of a parked box (``LossWeights.init_anchor``).
 INIT_ANCHORS = ("centre", "seen_faces")
-#: Largest ``CarProfile.overhang`` (share of the length at each end): the wheel part keeps 0.4 of it.
-MAX_OVERHANG_SHARE = 0.3
+#: Largest share of a box's extent a car-profile part leaves out at each end (the wheel part's
+#: ``CarProfile.overhang`` of the length, the body's bottom raised by ``clearance``): the part
+#: keeps at least 0.4 of its box (:func:`vsrd_mi.optimise.losses.box_corners`).
+MAX_PART_FRACTION = 0.3
 
 
 @dataclass(frozen=True)
@@ -204,9 +206,9 @@ class CarProfile:
         if self.clearance < 0 or self.overhang < 0 or self.corner < 0 or self.mirror < 0:
             raise ValueError("CarProfile: clearance, overhang, corner and mirror must be >= 0, got "
                              f"{self.clearance}, {self.overhang}, {self.corner}, {self.mirror}")
-        if self.overhang > MAX_OVERHANG_SHARE:
+        if self.overhang > MAX_PART_FRACTION:
             raise ValueError(f"CarProfile: overhang is a share of the length at each end, at most "
-                             f"{MAX_OVERHANG_SHARE}, got {self.overhang}")
+                             f"{MAX_PART_FRACTION}, got {self.overhang}")
         if not 0.0 < self.roof <= 1.0:
             raise ValueError(f"CarProfile: roof must be in (0, 1] (a share of the length), got {self.roof}")
         if not 0.5 <= self.waist <= 1.0:

@@ -20,11 +20,8 @@ from ..geometry.camera import NEAR_PLANE, footprint
 from ..geometry.surface import footprint_ray_residuals, quantile_soft_l1, range_quantile
 from ..geometry.vehicle_sizes import tight_width
 from ..geometry.xp import drjit_namespace
-from .config import CarProfile
+from .config import MAX_PART_FRACTION, CarProfile
 
-#: :func:`box_corners` takes at most this fraction of a box's length off each end, and raises its
-#: bottom by at most this fraction of its height (a car-profile part never degenerates).
-MAX_PART_FRACTION = 0.3
 
 
 def to_float(values) -> mi.Float:
