@@ -2,8 +2,8 @@
 
 Two presets: :func:`paper_config` reproduces the paper's schedule (3000 steps, 1000 box-only
 warm-up steps, 1000 rays, dense sampling); :func:`default_config` is the fast default (adaptive
-sampling, fewer steps with the same cosine schedules compressed, early stopping), chosen by the
-run-time-versus-error benchmark.
+sampling, fewer steps with the same cosine schedules compressed, a learning rate that decays
+less over them, early stopping), chosen by the run-time-versus-error benchmark.
 """
 
 from __future__ import annotations
