@@ -23,7 +23,6 @@ from ..geometry.xp import drjit_namespace
 from .config import MAX_PART_FRACTION, CarProfile
 
 
-
 def to_float(values) -> mi.Float:
     """A Dr.Jit Float holding a copy of NumPy ``values`` in Dr.Jit-owned (aligned) memory.
 
@@ -257,9 +256,9 @@ def seen_face_normals(boxes: list[Box3D], camera: np.ndarray | None = None) -> n
     normals = np.zeros((len(boxes), 4))
     for i, b in enumerate(boxes):
         local = b.rotation.T @ (cam - b.centre)   # the camera in box coordinates (x width, z length)
-        for k, axis in ((0, 0), (2, 2)):
+        for axis in (0, 2):   # normals' columns 0:2 hold the side (local x), 2:4 the end (local z)
             if abs(local[axis]) > 0.5 * b.size[axis]:
-                normals[i, k:k + 2] = np.sign(local[axis]) * b.rotation[[0, 2], axis]
+                normals[i, axis:axis + 2] = np.sign(local[axis]) * b.rotation[[0, 2], axis]
     return normals
 
 
