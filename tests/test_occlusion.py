@@ -80,6 +80,20 @@ def test_things_standing_behind_a_car_leave_its_sides_closed():
     assert open_sides(m == CAR, occluder_map(m), lowest_rows(m)).tolist() == [False, True, False, False]
 
 
+def test_an_occluder_meeting_the_end_at_a_slant_opens_it():
+    """A car in front whose top edge meets the car's end below its outermost pixels (a rear
+    window sloping down behind a nearer car's roof) hides the rest of the end: looking only
+    straight outwards from the outermost pixels finds the sky there, looking within 45 degrees
+    of outwards finds the car in front."""
+    m = instance_map()                      # CAR: rows 20-39, columns 30-69
+    m[20:40, 66:70] = ROAD
+    m[20:23, 66:70] = CAR                   # the end's outermost pixels: a tip, rows 20-22
+    m[23:45, 66:90] = OTHER_CAR             # in front (lower bottom), its top edge just below the tip
+    assert open_sides(m == CAR, occluder_map(m), lowest_rows(m)).tolist() == [False, False, True, False]
+    m[23:45, 66:90] = ROAD                  # nothing beside the tip: the end stays a constraint
+    assert not open_sides(m == CAR, occluder_map(m), lowest_rows(m)).any()
+
+
 def test_the_image_edge_opens_a_truncated_side():
     m = instance_map()
     m[20:40, 0:30] = CAR                    # the car reaches the left image edge

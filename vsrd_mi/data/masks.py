@@ -121,6 +121,12 @@ def open_sides(mask: np.ndarray, occluders: np.ndarray, lowest: np.ndarray | Non
     The mask's outermost pixels on a side (within :data:`SIDE_BAND_PX` of it) are looked past, up to
     :data:`SIDE_REACH_PX` pixels outwards: where the image ends or an occluder (``occluders``, e.g.
     :func:`occluder_map`, the mask's own pixels aside) lies there, the object may go on behind it.
+    Past the left and right sides the look spans 45 degrees either side of outwards: a car's end
+    is often a point of its silhouette (a sloping rear window, a rounded bumper) that an
+    occluder's edge meets at a slant, below or above the point rather than beside it, and a car
+    in front hides the rest of the end there all the same. The top and bottom are runs along the
+    roof and the ground, which the straight look covers, and a slanted look past them would reach
+    the cars beside the roof's ends.
     A side is open when at least :data:`OPEN_SIDE_FRACTION` of its outermost pixels are. With
     ``lowest`` (:func:`lowest_rows` of the instance map ``mask`` is one instance of, which holds the
     mask's own lowest rows at its pixels) an occluder pixel stands behind the
@@ -149,15 +155,17 @@ def open_sides(mask: np.ndarray, occluders: np.ndarray, lowest: np.ndarray | Non
         ex, ey = xs[edge], ys[edge]
         hit = np.zeros(len(ex), dtype=bool)
         for step in range(1, SIDE_REACH_PX + 1):
-            qx, qy = ex + dx * step, ey + dy * step
-            outside = (qx < 0) | (qx >= W) | (qy < 0) | (qy >= H)
-            inside = ~outside
-            hit |= outside
-            here = blocked[qy[inside], qx[inside]]
-            if lowest is not None:  # not an occluder where it stands clearly behind the object
-                own = lowest[:, ey[inside], ex[inside]]   # the mask's column and overall lowest rows
-                here &= ~np.all(lowest[:, qy[inside], qx[inside]] < own - BEHIND_MARGIN_PX, axis=0)
-            hit[inside] |= here
+            # left and right: within 45 degrees of outwards (see the docstring)
+            for lateral in range(-step, step + 1) if dx else (0,):
+                qx, qy = ex + dx * step, ey + dy * step + lateral
+                inside = (qx >= 0) & (qx < W) & (qy >= 0) & (qy < H)
+                if lateral == 0:
+                    hit |= ~inside                        # past the image edge
+                here = blocked[qy[inside], qx[inside]]
+                if lowest is not None:  # not an occluder where it stands clearly behind the object
+                    own = lowest[:, ey[inside], ex[inside]]   # the mask's column and overall lowest rows
+                    here &= ~np.all(lowest[:, qy[inside], qx[inside]] < own - BEHIND_MARGIN_PX, axis=0)
+                hit[inside] |= here
         out[k] = hit.mean() >= OPEN_SIDE_FRACTION
     return out
 
