@@ -94,10 +94,17 @@ def test_an_occluder_meeting_the_end_at_a_slant_opens_it():
     assert not open_sides(m == CAR, occluder_map(m), lowest_rows(m)).any()
 
 
-def test_the_image_edge_opens_a_truncated_side():
+def test_the_image_edge_opens_a_truncated_side_and_its_top_and_bottom():
+    """Beyond the image's edge the car may reach higher (its roof) and lower (its nearest wheel)."""
     m = instance_map()
     m[20:40, 0:30] = CAR                    # the car reaches the left image edge
-    assert open_sides(m == CAR, occluder_map(m)).tolist() == [True, False, False, False]
+    assert open_sides(m == CAR, occluder_map(m)).tolist() == [True, True, False, True]
+    m = instance_map()
+    m[20:40, 70:100] = CAR                  # and the right one
+    assert open_sides(m == CAR, occluder_map(m)).tolist() == [False, True, True, True]
+    m = instance_map()
+    m[15:45, 60:80] = OTHER_CAR             # cut by a car in front instead: top and bottom stay
+    assert open_sides(m == CAR, occluder_map(m), lowest_rows(m)).tolist() == [False, False, True, False]
 
 
 def test_a_few_occluded_edge_pixels_do_not_open_a_side():

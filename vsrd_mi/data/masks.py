@@ -127,7 +127,12 @@ def open_sides(mask: np.ndarray, occluders: np.ndarray, lowest: np.ndarray | Non
     in front hides the rest of the end there all the same. The top and bottom are runs along the
     roof and the ground, which the straight look covers, and a slanted look past them would reach
     the cars beside the roof's ends.
-    A side is open when at least :data:`OPEN_SIDE_FRACTION` of its outermost pixels are. With
+    A side is open when at least :data:`OPEN_SIDE_FRACTION` of its outermost pixels are. A mask
+    that reaches the image's left or right edge has its top and bottom open as well: the part of
+    the car beyond the edge may hold its roof or its nearest wheel (a near car cut by the edge
+    often shows only a bumper and a wing), which reach higher and lower than the part inside. A
+    side cut by an occluder does not open the top and bottom: most cars in rows are cut by their
+    neighbours, and bounded only from inside their heights grow (docs/accuracy.md). With
     ``lowest`` (:func:`lowest_rows` of the instance map ``mask`` is one instance of, which holds the
     mask's own lowest rows at its pixels) an occluder pixel stands behind the
     object and hides nothing where its thing's lowest row in its column lies more than
@@ -167,6 +172,8 @@ def open_sides(mask: np.ndarray, occluders: np.ndarray, lowest: np.ndarray | Non
                     here &= ~np.all(lowest[:, qy[inside], qx[inside]] < own - BEHIND_MARGIN_PX, axis=0)
                 hit[inside] |= here
         out[k] = hit.mean() >= OPEN_SIDE_FRACTION
+    if bounds[0] == 0 or bounds[2] == W - 1:
+        out[[1, 3]] = True        # cut by the image's side: its roof or nearest wheel may lie beyond
     return out
 
 
