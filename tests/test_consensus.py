@@ -18,10 +18,13 @@ import pytest
 
 import vsrd_mi  # noqa: F401
 from vsrd_mi.autolabel.consensus import (
+    TargetBoxes,
     apply_consensus,
     axis_inliers,
     axis_mean,
+    crossed,
     fuse_boxes,
+    fuse_parked_cars,
     labels_in_frame,
     weighted_median,
 )
@@ -253,6 +256,34 @@ def test_crossed_boxes_are_not_averaged_into_a_diagonal():
     assert inliers.tolist() == [True, True, True]
     assert axis_difference(fused.yaw, 0.0) < math.radians(2)
     np.testing.assert_allclose(fused.size, [2.15, 1.7, 4.9])
+
+
+def test_crossed_boxes_are_judged_on_the_same_frames():
+    """A target that saw a car end-on from 12 m turned its box across the car; one that saw it
+    from 18 m did not. Each target's own confidence is over its own frames, and the nearer one
+    weighs more, so it won; scored again over both targets' frames (``rescore``), the box that
+    matches more of the car's masks wins, whatever its range. Boxes that agree are not rescored."""
+    right = Box3D([3.0, 0.8, 18.0], [2.1, 1.7, 4.8], 0.01, instance_id=7)
+    across = Box3D([3.2, 0.8, 11.8], [2.0, 1.5, 4.4], 0.01 + math.pi / 2, instance_id=7)
+    results = [TargetBoxes(0, (0, 1, 2), (right,), (0.80,)), TargetBoxes(5, (4, 5, 6), (across,), (0.80,))]
+    ident = {0: np.eye(4), 5: np.eye(4)}
+    cfg = ConsensusConfig(gate=7.0)
+    calls = []
+
+    def rescore(boxes, targets):
+        calls.append(sorted(targets))
+        return np.array([0.75 if abs(b.yaw - right.yaw) < 0.1 else 0.60 for b in boxes])
+
+    (own,) = fuse_parked_cars(results, ident, cfg)
+    assert axis_difference(own.box.yaw, across.yaw) < 1e-9       # the nearer box's say
+    (fused,) = fuse_parked_cars(results, ident, cfg, rescore=rescore)
+    assert calls == [[0, 5]] and axis_difference(fused.box.yaw, right.yaw) < 1e-9
+    np.testing.assert_allclose(fused.box.size, right.size)
+    agree = [results[0], TargetBoxes(5, (4, 5, 6), (replace(across, yaw=0.05),), (0.7,))]
+    fuse_parked_cars(agree, ident, cfg, rescore=rescore)
+    assert calls == [[0, 5]]
+    assert crossed(np.array([0.0, math.pi - 0.1]), 30.0) is False
+    assert crossed(np.array([0.0, 0.2, 1.2]), 30.0) is True
 
 
 def test_autolabel_cli_applies_the_consensus_after_its_targets(scene, tmp_path, monkeypatch, capsys):

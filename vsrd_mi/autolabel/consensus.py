@@ -20,7 +20,11 @@ frame and fused:
 * the axis: the inliers whose axis lies within ``axis_gate`` degrees of the axis that carries the
   most weight times confidence (:func:`axis_inliers`) are the ones fused: a box standing across
   the car is a wrong box, and averaging it in gives a diagonal that no target found. Of two
-  targets that disagree, the one whose box matched its masks better (its confidence) wins;
+  targets that disagree, the one whose box matches the car's masks better wins: where the axes
+  cross, every box's confidence is measured again over the frames of all the targets that see
+  the car, so that each is scored on the same views (a target that saw a car only end-on may
+  turn its box across the car and still match its own frames' masks as well as the right box
+  does, but not the masks of a target that passed the car);
 * the fused box: component-wise weighted median of the fused boxes' centres and sizes, and their
   weighted mean axis ``yaw = arg(sum_k w_k exp(2 i yaw_k)) / 2`` (period pi: a box turned end for
   end is the same box);
@@ -44,7 +48,7 @@ import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import NamedTuple
+from typing import Callable, NamedTuple
 
 import numpy as np
 
@@ -157,12 +161,14 @@ def fused_front(axis: float, yaws: np.ndarray, evidence: np.ndarray, min_evidenc
 
 def fuse_boxes(boxes: list[Box3D], gate: float, evidence: np.ndarray | None = None,
                min_evidence: float = 0.0, weights: np.ndarray | None = None,
-               axis_gate_deg: float = 90.0, confidences: np.ndarray | None = None
-               ) -> tuple[Box3D, np.ndarray] | None:
+               axis_gate_deg: float = 90.0, confidences: np.ndarray | None = None,
+               axis_by_confidence: bool = False) -> tuple[Box3D, np.ndarray] | None:
     """Consensus of one parked car's boxes (one frame): see the module docstring. ``evidence``:
     each box's heading evidence for its own yaw (None: none); ``weights``: each box's weight
     (None: equal); ``axis_gate_deg``: the axis gate (90: none); ``confidences``: each box's
-    confidence, which scales its say in the axis (None: equal).
+    confidence, which scales its say in the axis (None: equal); ``axis_by_confidence``: the
+    confidences alone, not times the weights, are the boxes' say in the axis (confidences
+    measured over the same frames for every box).
 
     Returns the fused box and the inlier mask (the boxes it replaces), or None when fewer than
     two boxes are inliers.
@@ -172,7 +178,7 @@ def fuse_boxes(boxes: list[Box3D], gate: float, evidence: np.ndarray | None = No
     inliers = np.linalg.norm(centres - weighted_median(centres, w), axis=1) <= gate
     if inliers.sum() < 2:
         return None
-    say = w if confidences is None else w * np.asarray(confidences, dtype=np.float64)
+    say = w if confidences is None else np.asarray(confidences, dtype=np.float64) * (1.0 if axis_by_confidence else w)
     all_yaws = np.array([b.yaw for b in boxes])
     fused_mask = inliers.copy()
     fused_mask[inliers] = axis_inliers(all_yaws[inliers], say[inliers], math.radians(axis_gate_deg))
@@ -199,13 +205,22 @@ class Contribution(NamedTuple):
     confidence: float
 
 
+def crossed(yaws: np.ndarray, gate_deg: float) -> bool:
+    """Whether two of the axes ``yaws`` (radians) differ by more than ``gate_deg`` degrees."""
+    yaws = np.asarray(yaws, dtype=np.float64)
+    return bool(np.any(axis_difference(yaws[:, None], yaws[None, :]) > math.radians(gate_deg)))
+
+
 def fuse_parked_cars(results: list[TargetBoxes], to_reference: dict[int, np.ndarray],
-                     cfg: ConsensusConfig, min_evidence: float = HeadingConfig.min_evidence) -> list[FusedCar]:
+                     cfg: ConsensusConfig, min_evidence: float = HeadingConfig.min_evidence,
+                     rescore: Callable[[list[Box3D], list[int]], np.ndarray] | None = None) -> list[FusedCar]:
     """Fuse every parked instance seen by at least ``cfg.min_targets`` targets.
 
     ``to_reference[t]`` maps target ``t``'s optimisation frame to the reference frame (4x4);
     ``min_evidence`` is the heading evidence that decides a fused car's front
-    (:class:`~vsrd_mi.optimise.config.HeadingConfig`).
+    (:class:`~vsrd_mi.optimise.config.HeadingConfig`). ``rescore(boxes, targets)``: the
+    confidences of one car's boxes (reference frame) over the frames of all those targets, used
+    in place of each target's own where the boxes' axes cross (None: the targets' own).
     """
     seen: dict[int, list[Contribution]] = {}
     for r in results:
@@ -219,9 +234,12 @@ def fuse_parked_cars(results: list[TargetBoxes], to_reference: dict[int, np.ndar
     for iid, items in sorted(seen.items()):
         if len(items) < max(cfg.min_targets, 2):
             continue
+        confidences = np.array([c.confidence for c in items])
+        rescored = rescore is not None and crossed(np.array([c.box.yaw for c in items]), cfg.axis_gate_deg)
+        if rescored:
+            confidences = np.asarray(rescore([c.box for c in items], [c.target for c in items]), dtype=np.float64)
         out = fuse_boxes([c.box for c in items], cfg.gate, np.array([c.evidence for c in items]), min_evidence,
-                         np.array([c.weight for c in items]), cfg.axis_gate_deg,
-                         np.array([c.confidence for c in items]))
+                         np.array([c.weight for c in items]), cfg.axis_gate_deg, confidences, rescored)
         if out is None or out[1].sum() < cfg.min_targets:
             continue
         box, inliers = out
@@ -247,16 +265,34 @@ def labels_in_frame(boxes: list[Box3D], scores: list[float], cam_to_opt: np.ndar
     return labels
 
 
-def mask_confidence(box: Box3D, seq: Sequence, frames: list[int], reference: np.ndarray) -> float:
+class MaskBoxes:
+    """The tight boxes of a sequence's instance masks, each frame's instance map read once:
+    ``mask_boxes(frame, instance_id)`` is the box ``(x1, y1, x2, y2)`` or None."""
+
+    def __init__(self, seq: Sequence):
+        self.seq = seq
+        self._frames: dict[int, dict[int, np.ndarray]] = {}
+
+    def __call__(self, frame: int, instance_id: int) -> np.ndarray | None:
+        if frame not in self._frames:
+            m = self.seq.instance_map(frame)
+            self._frames[frame] = {int(v): tight_box(m == v) for v in np.unique(m)}
+        return self._frames[frame].get(int(instance_id))
+
+
+def mask_confidence(box: Box3D, seq: Sequence, frames: list[int], reference: np.ndarray,
+                    mask_boxes: MaskBoxes | None = None) -> float:
     """docs/method.md §7's confidence of one parked box with a known instance id: mean over ``frames``
     of the 2D IoU of its projection and the instance's mask box (0 without either).
-    ``reference`` maps the world to the box's frame."""
+    ``reference`` maps the world to the box's frame; ``mask_boxes``: the sequence's mask boxes
+    (default: read each frame's instance map)."""
     ious = []
     size = seq.calibration.image_size
     for f in frames:
         proj = box_to_2d(box, seq.calibration.K, world_to_cam=np.linalg.inv(reference @ seq.cam0_to_world(f)),
                          image_size=size)
-        mask = tight_box(seq.instance_map(f) == box.instance_id)
+        mask = (tight_box(seq.instance_map(f) == box.instance_id) if mask_boxes is None
+                else mask_boxes(f, box.instance_id))
         ious.append(0.0 if proj is None or mask is None else float(iou_matrix(proj[None], mask[None])[0, 0]))
     return float(np.mean(ious)) if ious else 0.0
 
@@ -283,12 +319,18 @@ def apply_consensus(seq_dir: str | Path, seq: Sequence, cfg: ConsensusConfig,
         atomic_write_json(seq_dir / "consensus.json", report)
         return report
     opt = {r.target: opt_from_world(seq.cam0_to_world(r.target)) for r in results}
-    to_ref = {t: opt[results[0].target] @ np.linalg.inv(T) for t, T in opt.items()}
-    fused = fuse_parked_cars(results, to_ref, cfg, heading.min_evidence) if cfg.enabled else []
+    reference = opt[results[0].target]
+    to_ref = {t: reference @ np.linalg.inv(T) for t, T in opt.items()}
     group_of = {r.target: r.group for r in results}
+    mask_boxes = MaskBoxes(seq)
+
+    def confidences(boxes: list[Box3D], targets: list[int]) -> np.ndarray:
+        frames = sorted({f for t in targets for f in group_of[t]})
+        return np.array([mask_confidence(b, seq, frames, reference, mask_boxes) for b in boxes])
+
+    fused = fuse_parked_cars(results, to_ref, cfg, heading.min_evidence, confidences) if cfg.enabled else []
     fused = [FusedCar(c.instance_id, c.box, c.targets, c.outliers, c.spread,
-                      mask_confidence(c.box, seq, sorted({f for t in c.targets for f in group_of[t]}),
-                                      opt[results[0].target]))
+                      float(confidences([c.box], list(c.targets))[0]))
              for c in fused]
     by_target: dict[int, dict[int, FusedCar]] = {}
     for c in fused:
