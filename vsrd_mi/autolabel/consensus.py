@@ -55,7 +55,7 @@ import numpy as np
 from ..batch.atomic import atomic_write_json
 from ..data.kitti360 import Sequence
 from ..data.kitti_labels import KittiLabel, label_from_box, write_labels
-from ..data.masks import tight_box
+from ..data.masks import car_values, tight_box
 from ..data.observations import opt_from_world
 from ..errors import DataError
 from ..geometry.boxes import Box3D, axis_difference
@@ -266,7 +266,7 @@ def labels_in_frame(boxes: list[Box3D], scores: list[float], cam_to_opt: np.ndar
 
 
 class MaskBoxes:
-    """The tight boxes of a sequence's instance masks, each frame's instance map read once:
+    """The tight boxes of a sequence's car masks, each frame's instance map read once:
     ``mask_boxes(frame, instance_id)`` is the box ``(x1, y1, x2, y2)`` or None."""
 
     def __init__(self, seq: Sequence):
@@ -276,23 +276,21 @@ class MaskBoxes:
     def __call__(self, frame: int, instance_id: int) -> np.ndarray | None:
         if frame not in self._frames:
             m = self.seq.instance_map(frame)
-            self._frames[frame] = {int(v): tight_box(m == v) for v in np.unique(m)}
+            self._frames[frame] = {int(v): tight_box(m == v) for v in car_values(m)}
         return self._frames[frame].get(int(instance_id))
 
 
 def mask_confidence(box: Box3D, seq: Sequence, frames: list[int], reference: np.ndarray,
-                    mask_boxes: MaskBoxes | None = None) -> float:
+                    mask_boxes: MaskBoxes) -> float:
     """docs/method.md §7's confidence of one parked box with a known instance id: mean over ``frames``
     of the 2D IoU of its projection and the instance's mask box (0 without either).
-    ``reference`` maps the world to the box's frame; ``mask_boxes``: the sequence's mask boxes
-    (default: read each frame's instance map)."""
+    ``reference`` maps the world to the box's frame; ``mask_boxes``: the sequence's mask boxes."""
     ious = []
     size = seq.calibration.image_size
     for f in frames:
         proj = box_to_2d(box, seq.calibration.K, world_to_cam=np.linalg.inv(reference @ seq.cam0_to_world(f)),
                          image_size=size)
-        mask = (tight_box(seq.instance_map(f) == box.instance_id) if mask_boxes is None
-                else mask_boxes(f, box.instance_id))
+        mask = mask_boxes(f, box.instance_id)
         ious.append(0.0 if proj is None or mask is None else float(iou_matrix(proj[None], mask[None])[0, 0]))
     return float(np.mean(ious)) if ious else 0.0
 

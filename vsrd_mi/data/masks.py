@@ -159,6 +159,7 @@ def open_sides(mask: np.ndarray, occluders: np.ndarray, lowest: np.ndarray | Non
         edge = np.abs(coord - extreme) < SIDE_BAND_PX
         ex, ey = xs[edge], ys[edge]
         hit = np.zeros(len(ex), dtype=bool)
+        own = None if lowest is None else lowest[:, ey, ex]   # the mask's column and overall lowest rows
         for step in range(1, SIDE_REACH_PX + 1):
             # left and right: within 45 degrees of outwards (see the docstring)
             for lateral in range(-step, step + 1) if dx else (0,):
@@ -168,8 +169,7 @@ def open_sides(mask: np.ndarray, occluders: np.ndarray, lowest: np.ndarray | Non
                     hit |= ~inside                        # past the image edge
                 here = blocked[qy[inside], qx[inside]]
                 if lowest is not None:  # not an occluder where it stands clearly behind the object
-                    own = lowest[:, ey[inside], ex[inside]]   # the mask's column and overall lowest rows
-                    here &= ~np.all(lowest[:, qy[inside], qx[inside]] < own - BEHIND_MARGIN_PX, axis=0)
+                    here &= ~np.all(lowest[:, qy[inside], qx[inside]] < own[:, inside] - BEHIND_MARGIN_PX, axis=0)
                 hit[inside] |= here
         out[k] = hit.mean() >= OPEN_SIDE_FRACTION
     if bounds[0] == 0 or bounds[2] == W - 1:
