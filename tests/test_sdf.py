@@ -312,6 +312,16 @@ def test_softplus_sigmoid_exact_and_finite():
     np.testing.assert_allclose(np.array(sigmoid(mi.Float(xs))), 1.0 / (1.0 + np.exp(-xs)), rtol=1e-5, atol=1e-7)
 
 
+def test_sigmoid_derivative_is_s_times_one_minus_s_at_zero_too():
+    """A latent at the centre of its range is 0: its sigmoid must still pass a gradient (0.25)."""
+    xs = np.array([-8.0, -1.0, 0.0, 0.5, 8.0])
+    x = mi.Float(xs)
+    dr.enable_grad(x)
+    dr.backward(dr.sum(sigmoid(x)))
+    s = 1.0 / (1.0 + np.exp(-xs))
+    np.testing.assert_allclose(np.array(dr.grad(x)), s * (1.0 - s), rtol=1e-5, atol=1e-8)
+
+
 def random_boxes(rng, n):
     centres = np.stack([rng.uniform(-20, 20, n), rng.uniform(0, 2, n), rng.uniform(5, 60, n)], 1)
     sizes = np.stack([rng.uniform(1.4, 2.4, n), rng.uniform(1.2, 2.5, n), rng.uniform(3.0, 6.5, n)], 1)

@@ -30,8 +30,12 @@ def softplus(x):
 
 
 def sigmoid(x):
-    """Logistic function with finite values and derivatives for any finite ``x``."""
-    z = dr.exp(-dr.abs(x))
+    """Logistic function with finite values and derivatives for any finite ``x``.
+
+    ``exp(-|x|)`` through a select, not ``dr.abs``: the derivative of ``dr.abs`` at 0 is 0, which
+    would leave a latent that starts exactly at 0 (a range's centre) without a gradient.
+    """
+    z = dr.exp(dr.select(x >= 0, -x, x))
     return dr.select(x >= 0, 1.0 / (1.0 + z), z / (1.0 + z))
 
 

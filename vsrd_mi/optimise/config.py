@@ -190,7 +190,18 @@ class CarProfile:
     #: distance (0.9 m) made the wheels of short cars sit too far in and of long ones too far out,
     #: so lengths came out long for city cars and short for pickups (docs/accuracy.md).
     overhang: float = 0.2
+    #: Plan-corner cut (metres) of the projected body; with ``fit_corner`` where each box's fit starts.
     corner: float = 0.3
+    #: Fit each car's cut with its box, within ``[0, corner_max]``: how far bumpers wrap around
+    #: varies from car to car (a box-shaped van or estate hardly cuts its corners, a rounded city
+    #: car or coupe more), and a fixed cut wider than a car's own makes its mask's sides in oblique
+    #: views lie outside the projected body, which the loss closed by lengthening the box. Side
+    #: and end views fix length and width alone, oblique ones length + width - cut, so the
+    #: frames of a passing camera fix the cut too (docs/accuracy.md).
+    fit_corner: bool = True
+    #: Upper bound of the fitted cut (metres): twice ``corner``, so the fit starts at the centre
+    #: of its range.
+    corner_max: float = 0.6
     mirror: float = 0.12
     #: Share of the box's length over which the car reaches the box's top (centred).
     roof: float = 0.45
@@ -206,6 +217,9 @@ class CarProfile:
         if self.clearance < 0 or self.overhang < 0 or self.corner < 0 or self.mirror < 0:
             raise ValueError("CarProfile: clearance, overhang, corner and mirror must be >= 0, got "
                              f"{self.clearance}, {self.overhang}, {self.corner}, {self.mirror}")
+        if self.fit_corner and self.corner > 0 and not self.corner < self.corner_max:
+            raise ValueError(f"CarProfile: corner_max must exceed corner to fit the cut, got corner="
+                             f"{self.corner}, corner_max={self.corner_max}")
         if self.overhang > MAX_PART_FRACTION:
             raise ValueError(f"CarProfile: overhang is a share of the length at each end, at most "
                              f"{MAX_PART_FRACTION}, got {self.overhang}")

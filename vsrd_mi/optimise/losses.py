@@ -108,11 +108,17 @@ class LaneBoxes:
                          tuple(g(h) for h in dec.half), g(dec.cos), g(dec.sin))
 
 
-def box_corners(boxes: LaneBoxes, shorten: float = 0.0, raise_bottom: float = 0.0,
-                narrow: float = 0.0, keep_length: float = 1.0, keep_height: float = 1.0) -> list[tuple]:
+def _cuts(amount) -> bool:
+    """Whether ``amount`` (metres: a Python float, or a per-lane Dr.Jit array) may cut a part."""
+    return not isinstance(amount, (int, float)) or amount > 0
+
+
+def box_corners(boxes: LaneBoxes, shorten: float | mi.Float = 0.0, raise_bottom: float = 0.0,
+                narrow: float | mi.Float = 0.0, keep_length: float = 1.0, keep_height: float = 1.0) -> list[tuple]:
     """The 8 corners of gathered ``boxes``.
 
-    ``shorten``, ``narrow`` and ``raise_bottom`` (metres) give the corners of a part of each box
+    ``shorten``, ``narrow`` (metres, one value or one per lane) and ``raise_bottom`` (metres)
+    give the corners of a part of each box
     instead: ``shorten`` off each end along the length, ``narrow`` off each side along the
     width, the bottom face raised by ``raise_bottom`` (the optimisation frame's y points down),
     each capped at :data:`MAX_PART_FRACTION` of the extent. ``keep_length`` (fraction, centred)
@@ -121,11 +127,11 @@ def box_corners(boxes: LaneBoxes, shorten: float = 0.0, raise_bottom: float = 0.
     the height, so a part keeps ``keep_height - MAX_PART_FRACTION`` of it at least.
     """
     centre, half = list(boxes.centre), list(boxes.half)
-    if shorten > 0:
+    if _cuts(shorten):
         half[2] = half[2] - dr.minimum(shorten, 2.0 * MAX_PART_FRACTION * half[2])
     if keep_length < 1.0:
         half[2] = half[2] * keep_length
-    if narrow > 0:
+    if _cuts(narrow):
         half[0] = half[0] - dr.minimum(narrow, 2.0 * MAX_PART_FRACTION * half[0])
     if keep_height < 1.0:
         drop = (1.0 - keep_height) * half[1]  # half of the top's drop: the centre moves down by it
@@ -150,7 +156,8 @@ def _footprint(corners: list[tuple], lanes: ProjectionLanes):
     return footprint(cam, lanes.K, lanes.bounds, NEAR_PLANE, xp=drjit_namespace())
 
 
-def projected_boxes(dec: DecodedBoxes, lanes: ProjectionLanes, profile: CarProfile | None = None):
+def projected_boxes(dec: DecodedBoxes, lanes: ProjectionLanes, profile: CarProfile | None = None,
+                    corner: mi.Float | None = None):
     """Differentiable 2D footprints ``(x1, y1, x2, y2, valid)`` of the lanes' boxes.
 
     Without a ``profile`` (or with a zero one) the footprint of the 8 box corners (the paper).
@@ -166,23 +173,25 @@ def projected_boxes(dec: DecodedBoxes, lanes: ProjectionLanes, profile: CarProfi
     car, not of its box: the box's bottom corners at the ends enclose empty space under the
     bumpers, which project below the mask in every view that sees an end of the car, and its top
     corners at the ends enclose the space over the bonnet and the boot or bed.
+    ``corner`` (N, metres), where given, is each box's own plan-corner cut (fitted with the box,
+    :class:`~vsrd_mi.optimise.parameters.CornerRange`) in place of ``profile.corner``.
     """
     boxes = LaneBoxes.gather(dec, lanes.box, lanes.dt)  # once: every part is built from it
     if profile is None or not profile.enabled:
         return _footprint(box_corners(boxes), lanes)
     body = profile.mirror  # the box holds the mirrors, the body is that much narrower per side
     waist = profile.waist if profile.roof < 1.0 else 1.0  # outside the roof the body ends lower
-    if profile.corner > 0:  # the body's plan: an octagon, the union of two crossed boxes
-        parts = [box_corners(boxes, raise_bottom=profile.clearance, narrow=body + profile.corner,
-                             keep_height=waist),
-                 box_corners(boxes, raise_bottom=profile.clearance, shorten=profile.corner, narrow=body,
+    cut = profile.corner if corner is None else dr.gather(mi.Float, corner, lanes.box)
+    if _cuts(cut):  # the body's plan: an octagon, the union of two crossed boxes
+        parts = [box_corners(boxes, raise_bottom=profile.clearance, narrow=body + cut, keep_height=waist),
+                 box_corners(boxes, raise_bottom=profile.clearance, shorten=cut, narrow=body,
                              keep_height=waist)]
     else:
         parts = [box_corners(boxes, raise_bottom=profile.clearance, narrow=body, keep_height=waist)]
     if profile.clearance > 0:  # below the bumpers only the wheels, between the overhangs
         parts.append(box_corners(boxes, keep_length=1.0 - 2.0 * profile.overhang, narrow=body, keep_height=waist))
     if profile.roof < 1.0:  # the full height only over the roof, centred on the box
-        parts.append(box_corners(boxes, raise_bottom=profile.clearance, narrow=body + profile.corner,
+        parts.append(box_corners(boxes, raise_bottom=profile.clearance, narrow=body + cut,
                                  keep_length=profile.roof))
     x1, y1, x2, y2, valid = _footprint(parts[0], lanes)
     for corners in parts[1:]:
@@ -194,7 +203,8 @@ def projected_boxes(dec: DecodedBoxes, lanes: ProjectionLanes, profile: CarProfi
 
 def projection_loss(dec: DecodedBoxes, lanes: ProjectionLanes, beta: float,
                     w_huber: float, w_diou: float, containment: bool = False,
-                    excess: float = 0.0, profile: CarProfile | None = None) -> mi.Float:
+                    excess: float = 0.0, profile: CarProfile | None = None,
+                    corner: mi.Float | None = None) -> mi.Float:
     """Mean over lanes of ``w_huber * sum_4 Huber(e_i) + w_diou * (1 - DIoU)``.
 
     ``symmetric`` (the paper, ``containment=False``): ``e = pred - mask box`` per coordinate.
@@ -206,11 +216,12 @@ def projection_loss(dec: DecodedBoxes, lanes: ProjectionLanes, beta: float,
     mask's box, but not onto it (an object is not a box: its silhouette is smaller than its
     box's footprint), so the symmetric loss pulls boxes smaller -- and, for moving cars whose
     depth trades off against velocity, farther away; with ``excess < 1`` the mask boxes bound
-    the box from inside and ``excess`` only tightens it. ``profile``: see :func:`projected_boxes`.
+    the box from inside and ``excess`` only tightens it. ``profile``, ``corner``: see
+    :func:`projected_boxes`.
     """
     if lanes.count == 0:
         return mi.Float(0.0)
-    x1, y1, x2, y2, _ = projected_boxes(dec, lanes, profile)
+    x1, y1, x2, y2, _ = projected_boxes(dec, lanes, profile, corner)
     pred = (x1, y1, x2, y2)
     tgt = lanes.target
     if containment:

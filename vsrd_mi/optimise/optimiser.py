@@ -43,7 +43,7 @@ from ..geometry.camera import image_bounds
 from ..scene.builder import integrator_dict, scene_dict
 from . import losses
 from .config import AutolabelConfig, CarProfile, LossWeights
-from .parameters import BOX_LATENTS, VELOCITY_LATENT, BoxLatents, BoxRanges
+from .parameters import VELOCITY_LATENT, BoxLatents, BoxRanges, CornerRange
 
 INTEGRATOR = "vsrd"
 #: Dr.Jit threads while the frozen box step replays. Its kernels are small (a few hundred lanes):
@@ -57,9 +57,9 @@ EIKONAL_SPREAD = 1.2
 
 
 def latent_values(opts: list) -> dict:
-    """The latents the Adam optimisers hold: ``opts[0]``'s box latents and, when given,
-    ``opts[1]``'s velocities."""
-    lat = {k: opts[0][k] for k in BOX_LATENTS}
+    """The latents the Adam optimisers hold: ``opts[0]``'s box latents (the fitted cuts among
+    them) and, when given, ``opts[1]``'s velocities."""
+    lat = {k: opts[0][k] for k in opts[0].keys()}
     if len(opts) > 1:
         lat[VELOCITY_LATENT] = opts[1][VELOCITY_LATENT]
     return lat
@@ -73,13 +73,22 @@ def decode_latents(opts: list, latents: BoxLatents, fixed: dict):
     return InstanceField.decode_parameters({**fixed, **phys}, latents.count), phys
 
 
+def fitted_corner(profile: CarProfile) -> CornerRange | None:
+    """The range of the per-car plan-corner cut the optimiser fits (None: ``profile.corner``
+    for every car)."""
+    if profile.enabled and profile.fit_corner and profile.corner > 0:
+        return CornerRange(profile.corner, profile.corner_max)
+    return None
+
+
 def box_losses(dec, lanes: losses.ProjectionLanes, terms: list, w: LossWeights,
-               profile: CarProfile) -> tuple[mi.Float, mi.Float]:
-    """The projection loss of decoded boxes and the sum of the init terms (anchor, priors,
-    visible surface): every loss term that needs no rendering."""
+               profile: CarProfile, corner: mi.Float | None = None) -> tuple[mi.Float, mi.Float]:
+    """The projection loss of decoded boxes (with their fitted plan-corner cuts ``corner``,
+    where given) and the sum of the init terms (anchor, priors, visible surface): every loss term
+    that needs no rendering."""
     l_proj = losses.projection_loss(dec, lanes, w.huber_beta, w.projection_huber, w.projection_diou,
                                     containment=w.projection_mode == "containment",
-                                    excess=w.projection_excess, profile=profile)
+                                    excess=w.projection_excess, profile=profile, corner=corner)
     l_init = mi.Float(0.0)
     for term in terms:
         l_init = l_init + term.loss(dec)
@@ -97,14 +106,14 @@ def box_step(opts: list, latents: BoxLatents, fixed: dict, lanes: losses.Project
     ``(x1, y1, x2, y2)`` after it, which the next step's matching reads.
     """
     dec, phys = decode_latents(opts, latents, fixed)
-    l_proj, l_init = box_losses(dec, lanes, terms, w, profile)
+    l_proj, l_init = box_losses(dec, lanes, terms, w, profile, phys.get("corner"))
     total = l_proj + l_init
     dr.backward(total)
     for o in opts:
         o.step()
     with dr.suspend_grad():
-        after, _ = decode_latents(opts, latents, fixed)
-        projected = losses.projected_boxes(after, target_lanes, profile)[:4]
+        after, phys_after = decode_latents(opts, latents, fixed)
+        projected = losses.projected_boxes(after, target_lanes, profile, phys_after.get("corner"))[:4]
     return ([dr.detach(x) for x in (total, l_proj, l_init)], [dr.detach(phys["centre"]), dr.detach(phys["size"])],
             [dr.detach(x) for x in projected])
 
@@ -226,7 +235,7 @@ class BoxOptimiser:
         self.integrator.field.use_residual = False  # the residual field joins after the box-only warm-up
         self.params = mi.traverse(self.scene)
         # the optimiser's own latent variables (parameters.py), decoded into the boxes each step
-        self.latents = BoxLatents(BoxRanges(), self.n)
+        self.latents = BoxLatents(BoxRanges(), self.n, fitted_corner(cfg.car_profile))
         self.start = self.latents.initial(np.stack([b.centre for b in boxes]), np.stack([b.size for b in boxes]),
                                           np.array([b.yaw for b in boxes]), np.stack([b.velocity for b in boxes]))
         self.init_boxes = init_boxes
@@ -271,10 +280,11 @@ class BoxOptimiser:
                                       np.array(tgt).reshape(-1, 4), obs.K[0], self.bounds,
                                       np.array(sides, bool).reshape(-1, 4))
 
-    def _match(self, dec) -> np.ndarray:
-        """Hungarian matching of boxes to target-frame instances on -DIoU."""
+    def _match(self, dec, corner: mi.Float | None = None) -> np.ndarray:
+        """Hungarian matching of boxes to target-frame instances on -DIoU (``corner``: the
+        boxes' fitted cuts, where fitted)."""
         with dr.suspend_grad():
-            projected = losses.projected_boxes(dec, self.target_lanes, self.cfg.car_profile)[:4]
+            projected = losses.projected_boxes(dec, self.target_lanes, self.cfg.car_profile, corner)[:4]
         return self._match_projected(np.stack([np.array(v) for v in projected], 1))
 
     def _match_projected(self, pred: np.ndarray) -> np.ndarray:
@@ -291,18 +301,22 @@ class BoxOptimiser:
     def _adam(self, params: dict[str, mi.Float], lr: float) -> mi.ad.Adam:
         return mi.ad.Adam(lr=lr, params=params)
 
-    def _write_boxes(self, opt_box: mi.ad.Adam, opt_vel: mi.ad.Adam | None) -> None:
+    def _write_boxes(self, opt_box: mi.ad.Adam, opt_vel: mi.ad.Adam | None) -> mi.Float | None:
         """Decode the latents held by the Adam optimisers into the integrator's box parameters
-        (with their AD graph: the gradients reach the latents)."""
+        (with their AD graph: the gradients reach the latents). Returns the fitted plan-corner
+        cuts (not an integrator parameter), None where not fitted."""
         opts = [opt_box] if opt_vel is None else [opt_box, opt_vel]
-        for key, value in self.latents.decode(latent_values(opts)).items():
+        phys = self.latents.decode(latent_values(opts))
+        corner = phys.pop("corner", None)
+        for key, value in phys.items():
             self.params[f"{INTEGRATOR}.{key}"] = value
         self.params.update()
+        return corner
 
     def run(self, progress=None) -> OptimisationResult:
         cfg = self.cfg
         t0 = _time.time()
-        opt_box = self._adam({k: self.start[k] for k in BOX_LATENTS}, cfg.lr.box)
+        opt_box = self._adam({k: self.start[k] for k in self.latents.box_keys}, cfg.lr.box)
         opt_vel = self._adam({VELOCITY_LATENT: self.start[VELOCITY_LATENT]}, cfg.lr.velocity) if self.dynamic.any() else None
         self._opt_rdf = None  # the residual field's optimisers, once it joins
         w = cfg.weights
@@ -406,12 +420,12 @@ class BoxOptimiser:
         cfg = self.cfg
         # one fresh opaque rate per parameter: a shared array is scaled in place by Adam once per
         # parameter, and a Python float would enter the recording as a constant
-        opt_box.set_learning_rate({k: dr.opaque(mi.Float, cfg.lr.box * decay) for k in BOX_LATENTS})
+        opt_box.set_learning_rate({k: dr.opaque(mi.Float, cfg.lr.box * decay) for k in self.latents.box_keys})
         if opt_vel is not None:
             opt_vel.set_learning_rate({VELOCITY_LATENT: dr.opaque(mi.Float, cfg.lr.velocity * decay)})
         if projected is None:  # the first step's boxes are matched as unfrozen
-            self._write_boxes(opt_box, opt_vel)
-            perm = self._match(self.integrator.field.decode())
+            corner = self._write_boxes(opt_box, opt_vel)
+            perm = self._match(self.integrator.field.decode(), corner)
         else:
             perm = self._match_projected(projected)
         self._update_lanes(perm)
@@ -445,12 +459,12 @@ class BoxOptimiser:
         if rdf:
             rdf[0].set_learning_rate(cfg.lr.embedding * decay)
             rdf[1].set_learning_rate(cfg.lr.hypernetwork * decay)
-        self._write_boxes(opt_box, opt_vel)
+        corner = self._write_boxes(opt_box, opt_vel)
         for o in rdf:
             self.params.update(o)
         dec = it.field.decode()
-        self._update_lanes(self._match(dec))
-        l_proj, l_init = box_losses(dec, self._lanes, init_terms, w, cfg.car_profile)
+        self._update_lanes(self._match(dec, corner))
+        l_proj, l_init = box_losses(dec, self._lanes, init_terms, w, cfg.car_profile, corner)
         total = l_proj + l_init
         l_sil = l_eik = mi.Float(0.0)
         sdf_evals = 0

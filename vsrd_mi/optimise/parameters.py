@@ -13,6 +13,8 @@ latent          size   decoding
 ``box_centre``  3N     ``centre = lo + (hi - lo) sigmoid(raw)``
 ``box_yaw``     2N     an unnormalised ``(cos, sin)`` pair; ``yaw = atan2(sin, cos)``
 ``box_velocity`` 3N    the velocity itself
+``box_corner``  N      the plan-corner cut of the car profile (optional, not an integrator
+                       parameter): ``corner = max sigmoid(gain raw)`` (:class:`CornerRange`)
 ==============  =====  =======================================================================
 """
 
@@ -32,6 +34,8 @@ from .losses import to_float
 #: Latent variables of the box shape and placement (one Adam), and of the velocity (another).
 BOX_LATENTS = ("box_dims", "box_centre", "box_yaw")
 VELOCITY_LATENT = "box_velocity"
+#: Latent of the fitted plan-corner cut (with the box latents' Adam, when fitted).
+CORNER_LATENT = "box_corner"
 #: Probability clip of :func:`logit` (keeps a box on a range bound at a finite latent value).
 LOGIT_EPS = 1e-6
 #: Below this squared norm a ``(cos, sin)`` latent pair decodes as yaw 0 (with no gradient).
@@ -75,25 +79,61 @@ class BoxRanges:
 
 
 
+@dataclass(frozen=True)
+class CornerRange:
+    """The fitted plan-corner cut of each car (metres, :class:`~vsrd_mi.optimise.config.CarProfile`):
+    starts at ``start`` and stays within ``[0, max]``.
+
+    The latent is scaled by ``gain`` inside the sigmoid so that an Adam step moves the cut about as
+    far as it moves a half length (whose latent spans 2.5 m: ``2.5 * 0.25`` m per unit at the
+    sigmoid's centre, against ``max * 0.25 * gain``); without it the cut would cross its range in
+    several times the steps a box needs to settle.
+    """
+
+    start: float
+    max: float
+    gain: float = 4.0
+
+    def __post_init__(self) -> None:
+        if not 0.0 < self.start < self.max:
+            raise ValueError(f"CornerRange: need 0 < start < max, got start={self.start}, max={self.max}")
+        if self.gain <= 0:
+            raise ValueError(f"CornerRange: gain must be > 0, got {self.gain}")
+
+    def encode(self, count: int) -> np.ndarray:
+        """The latents of ``count`` cuts at ``start``."""
+        return np.full(count, logit(np.array(self.start / self.max)) / self.gain)
+
+
 class BoxLatents:
-    """Decodes the latents of ``count`` boxes within ``ranges`` (the range arrays built once)."""
+    """Decodes the latents of ``count`` boxes within ``ranges`` (the range arrays built once),
+    and of their plan-corner cuts within ``corner`` where given."""
 
     #: The range arrays, inputs of a frozen function that takes this object.
     DRJIT_STRUCT = {"span": list, "low": list}
 
-    def __init__(self, ranges: BoxRanges, count: int):
-        self.ranges, self.count = ranges, count
+    def __init__(self, ranges: BoxRanges, count: int, corner: CornerRange | None = None):
+        self.ranges, self.count, self.corner = ranges, count, corner
         self.span = [to_float(np.tile(np.array(hi) - np.array(lo), count)) for lo, hi in
                      ((ranges.half_lo, ranges.half_hi), (ranges.centre_lo, ranges.centre_hi))]
         self.low = [to_float(np.tile(np.array(lo), count)) for lo in (ranges.half_lo, ranges.centre_lo)]
 
     def initial(self, centre: np.ndarray, size: np.ndarray, yaw: np.ndarray, velocity: np.ndarray) -> dict[str, mi.Float]:
-        """Latent values of the given boxes (:meth:`BoxRanges.encode`) as Dr.Jit arrays."""
-        return {k: to_float(v) for k, v in self.ranges.encode(centre, size, yaw, velocity).items()}
+        """Latent values of the given boxes (:meth:`BoxRanges.encode`, and the cuts'
+        :meth:`CornerRange.encode` where fitted) as Dr.Jit arrays."""
+        values = self.ranges.encode(centre, size, yaw, velocity)
+        if self.corner is not None:
+            values[CORNER_LATENT] = self.corner.encode(self.count)
+        return {k: to_float(v) for k, v in values.items()}
+
+    @property
+    def box_keys(self) -> tuple[str, ...]:
+        """The latents the box Adam holds: :data:`BOX_LATENTS` and the cut where fitted."""
+        return BOX_LATENTS + ((CORNER_LATENT,) if self.corner is not None else ())
 
     def decode(self, latents: Mapping[str, mi.Float]) -> dict[str, mi.Float]:
-        """The physical parameters ``centre``, ``size``, ``yaw`` (and ``velocity`` where its
-        latent is given), differentiable w.r.t. the latents."""
+        """The physical parameters ``centre``, ``size``, ``yaw`` (and ``velocity`` and the cut
+        ``corner`` where their latents are given), differentiable w.r.t. the latents."""
         half = self.low[0] + self.span[0] * sigmoid(latents["box_dims"])
         pair = dr.arange(mi.UInt32, self.count) * 2
         yc, ys = dr.gather(mi.Float, latents["box_yaw"], pair), dr.gather(mi.Float, latents["box_yaw"], pair + 1)
@@ -102,4 +142,6 @@ class BoxLatents:
                "yaw": dr.atan2(dr.select(ok, ys, 0.0), dr.select(ok, yc, 1.0))}
         if VELOCITY_LATENT in latents:
             out["velocity"] = mi.Float(latents[VELOCITY_LATENT])
+        if CORNER_LATENT in latents and self.corner is not None:
+            out["corner"] = self.corner.max * sigmoid(self.corner.gain * latents[CORNER_LATENT])
         return out
