@@ -155,13 +155,14 @@ class CarProfile:
     ``clearance`` metres above the ground (the bumpers' underside): the box's bottom corners at the
     ends enclose empty space, so a car's mask ends above its box's projected bottom (8.5 px median
     within 10 m), a gap the symmetric projection loss closed by pushing boxes away or shortening
-    them. Seen from above a car's corners are rounded (bumpers wrap around), so in oblique views its
-    mask's sides lie inside its box's projected vertical edges, which the loss closed by shortening
-    the box. The loss therefore projects parts of each box (:func:`vsrd_mi.optimise.losses.projected_boxes`):
-    the body above ``clearance`` as an octagonal prism (each plan corner cut ``corner`` metres along
-    both sides) and the full height over the length less ``overhang`` at each end, and takes the 2D
-    box of their union. The values are those of passenger cars, chosen before any run; the results
-    hardly depend on them (docs/autolabel.md).
+    them. Seen from above most cars' corners are rounded (bumpers wrap around), so in oblique views
+    their mask's sides lie inside their box's projected vertical edges, which the loss closed by
+    shortening the box. The loss therefore projects parts of each box
+    (:func:`vsrd_mi.optimise.losses.projected_boxes`): the body above ``clearance`` as an octagonal
+    prism (each plan corner cut along both sides: by ``corner`` metres, or with ``fit_corner`` by a
+    cut fitted per car that starts there) and the full height over the length less ``overhang`` at
+    each end, and takes the 2D box of their union. The values are those of passenger cars, chosen
+    before any run (docs/autolabel.md).
     A box holds the whole vehicle, mirrors included, but the mirrors are thin and sit a third of
     the way back: they widen a car's mask box only in views along its axis, while its body sets the
     mask's sides in every other view. So the projected body is ``mirror`` metres narrower on each
@@ -193,11 +194,11 @@ class CarProfile:
     #: Plan-corner cut (metres) of the projected body; with ``fit_corner`` where each box's fit starts.
     corner: float = 0.3
     #: Fit each car's cut with its box, within ``[0, corner_max]``: how far bumpers wrap around
-    #: varies from car to car (a box-shaped van or estate hardly cuts its corners, a rounded city
-    #: car or coupe more), and a fixed cut wider than a car's own makes its mask's sides in oblique
-    #: views lie outside the projected body, which the loss closed by lengthening the box. Side
-    #: and end views fix length and width alone, oblique ones length + width - cut, so the
-    #: frames of a passing camera fix the cut too (docs/accuracy.md).
+    #: varies from car to car (a box-shaped van hardly cuts its corners, a rounded hatchback more),
+    #: and a fixed cut wider than a car's own puts its mask's sides in oblique views outside the
+    #: projected body, which the loss closed by lengthening the box (narrower: by shortening it).
+    #: The views of a passing camera see the car at different angles, each weighing length, width
+    #: and cut differently, so they fix the cut too (docs/accuracy.md, "Each car's plan corners").
     fit_corner: bool = True
     #: Upper bound of the fitted cut (metres): twice ``corner``, so the fit starts at the centre
     #: of its range.
