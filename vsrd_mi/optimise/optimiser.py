@@ -73,14 +73,6 @@ def decode_latents(opts: list, latents: BoxLatents, fixed: dict):
     return InstanceField.decode_parameters({**fixed, **phys}, latents.count), phys
 
 
-def fitted_corner(profile: CarProfile) -> CornerRange | None:
-    """The range of the per-car plan-corner cut the optimiser fits (None: ``profile.corner``
-    for every car)."""
-    if profile.enabled and profile.fit_corner and profile.corner > 0:
-        return CornerRange(profile.corner, profile.corner_max)
-    return None
-
-
 def box_losses(dec, lanes: losses.ProjectionLanes, terms: list, w: LossWeights,
                profile: CarProfile, corner: mi.Float | None = None) -> tuple[mi.Float, mi.Float]:
     """The projection loss of decoded boxes (with their fitted plan-corner cuts ``corner``,
@@ -235,7 +227,7 @@ class BoxOptimiser:
         self.integrator.field.use_residual = False  # the residual field joins after the box-only warm-up
         self.params = mi.traverse(self.scene)
         # the optimiser's own latent variables (parameters.py), decoded into the boxes each step
-        self.latents = BoxLatents(BoxRanges(), self.n, fitted_corner(cfg.car_profile))
+        self.latents = BoxLatents(BoxRanges(), self.n, CornerRange.of_profile(cfg.car_profile))
         self.start = self.latents.initial(np.stack([b.centre for b in boxes]), np.stack([b.size for b in boxes]),
                                           np.array([b.yaw for b in boxes]), np.stack([b.velocity for b in boxes]))
         self.init_boxes = init_boxes

@@ -29,6 +29,7 @@ import numpy as np
 
 from vsrd_plugins.common import sigmoid
 
+from .config import CarProfile
 from .losses import to_float
 
 #: Latent variables of the box shape and placement (one Adam), and of the velocity (another).
@@ -99,6 +100,14 @@ class CornerRange:
             raise ValueError(f"CornerRange: need 0 < start < max, got start={self.start}, max={self.max}")
         if self.gain <= 0:
             raise ValueError(f"CornerRange: gain must be > 0, got {self.gain}")
+
+    @staticmethod
+    def of_profile(profile: CarProfile) -> "CornerRange | None":
+        """The range of the cut fitted under ``profile`` (``corner`` to ``corner_max``); None
+        where it is not fitted (``fit_corner`` off, no cut, or the box corners projected)."""
+        if profile.enabled and profile.fit_corner and profile.corner > 0:
+            return CornerRange(profile.corner, profile.corner_max)
+        return None
 
     def encode(self, count: int) -> np.ndarray:
         """The latents of ``count`` cuts at ``start``."""
