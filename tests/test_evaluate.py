@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 from pathlib import Path
@@ -205,6 +206,19 @@ def test_small_prediction_on_counted_ground_truth_is_neither_tp_nor_fn():
                         det_ignored=np.array([True]), scores=np.array([0.5]))
     c = count_at_threshold(f, 0.5, 0.0)
     assert (c.tp, c.fp, c.fn) == (0, 0, 0)
+
+
+def test_car_count_names_each_car_once_across_frames_and_sequences():
+    """The same instance in three frames of one sequence is one car; the same id in another
+    sequence is another car; ground truth without an id counts per record."""
+    def named(iid, x=0.0):
+        return Box3D(centre=(x, 1.0, 20.0), size=(W, H, L), yaw=0.0, instance_id=iid)
+
+    frames = [dataclasses.replace(frame([named(7), named(8, x=4.0)], index=i), sequence="a") for i in range(3)]
+    frames.append(dataclasses.replace(frame([named(7), car(x=8.0)], index=0), sequence="b"))
+    frames.append(dataclasses.replace(frame([car(x=8.0)], index=1), sequence="b"))
+    s = evaluate_frames(frames)["pairs"]["all"]
+    assert (s["n_gt"], s["n_cars"]) == (9, 5)
 
 
 def test_pair_statistics_split_static_dynamic():

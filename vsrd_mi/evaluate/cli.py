@@ -80,12 +80,12 @@ def _ap_tables(result: dict) -> list[str]:
 
 
 def _summary_header(first: str) -> str:
-    return (f"{first:12s}{'n_gt':>6s}{'match':>7s}{'miss':>6s}{'IoU_BEV':>9s}{'IoU_3D':>8s}{'rw3D':>7s}"
+    return (f"{first:12s}{'n_gt':>6s}{'cars':>6s}{'match':>7s}{'miss':>6s}{'IoU_BEV':>9s}{'IoU_3D':>8s}{'rw3D':>7s}"
             f"{'centre_m':>10s}{'yaw180':>8s}{'head':>6s}{'dL':>8s}{'dW':>8s}{'dH':>8s}")
 
 
 def _summary_row(name: str, s: dict) -> str:
-    return (f"{name:12s}{s['n_gt']:6d}{s['n_matched']:7d}{_pct(s['missed_share']):>6s}"
+    return (f"{name:12s}{s['n_gt']:6d}{s['n_cars']:6d}{s['n_matched']:7d}{_pct(s['missed_share']):>6s}"
             f"{_fmt(s['mean_iou_bev'], '.3f'):>9s}{_fmt(s['mean_iou_3d'], '.3f'):>8s}"
             f"{_fmt(s['recall_weighted_iou_3d'], '.3f'):>7s}{_fmt(s['centre_error_m'], '.3f'):>10s}"
             f"{_fmt(s['yaw_error_deg'], '.2f'):>8s}{_pct(s['heading_accuracy']):>6s}"
@@ -103,7 +103,8 @@ def format_table(result: dict) -> str:
              f"Ground-truth 2D boxes: {protocol['gt_boxes']} ({protocol['gt_boxes_rule']})"]
     lines += _ap_tables(result)
     lines += ["", f"Matched pairs (Hungarian on 3D IoU > {protocol['pair_min_iou']:g}, "
-                  f"GT 2D height > {protocol['pair_min_height']:g} px): miss = GT without a box, rw3D = "
+                  f"GT 2D height > {protocol['pair_min_height']:g} px): n_gt = GT boxes over the frames, cars = "
+                  f"distinct cars among them, miss = GT without a box, rw3D = "
                   f"unmatched GT count as 0, yaw180 = mean yaw error modulo 180 deg, head = heading "
                   f"right (error < 90 deg), dL/dW/dH = mean signed size error relative to the truth",
               _summary_header("")]

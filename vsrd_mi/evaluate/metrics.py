@@ -7,6 +7,10 @@ ground-truth car becomes a :class:`GroundTruthRecord` (matched or not); :func:`s
 for any list of records:
 
 * ``n_gt``, ``n_matched`` and ``missed_share``: the share of the cars left without a box;
+* ``n_cars``: how many distinct cars the records are of (a car counts once however many frames
+  see it: ``(sequence, instance id)``; records without an instance id, a negative one, count one
+  each). A figure over many records of few cars varies from one set of streets to the next as
+  the cars do;
 * ``mean_iou_bev`` / ``mean_iou_3d``: mean IoU over matched pairs;
 * ``recall_weighted_iou_bev`` / ``recall_weighted_iou_3d``: the same sums divided by ``n_gt``,
   i.e. every unmatched ground-truth box counts as IoU 0;
@@ -68,6 +72,8 @@ class GroundTruthRecord:
     pred: Box3D | None = None
     iou_bev: float = 0.0
     iou_3d: float = 0.0
+    #: The sequence the frame belongs to (with the instance id it names the car across frames).
+    sequence: str = ""
 
     @property
     def matched(self) -> bool:
@@ -104,10 +110,11 @@ def heading_error(a: float, b: float) -> float:
 
 
 def match_frame(frame: int, gt: Sequence[Box3D], pred: Sequence[Box3D], gt_counted: Sequence[bool],
-                min_iou: float = 0.0, attributes: Sequence[CarAttributes] | None = None
-                ) -> list[GroundTruthRecord]:
-    """Records of the counted ground truth of one frame (all ground truth takes part in the
-    Hungarian matching; ground truth with ``gt_counted`` False is matched but not recorded)."""
+                min_iou: float = 0.0, attributes: Sequence[CarAttributes] | None = None,
+                sequence: str = "") -> list[GroundTruthRecord]:
+    """Records of the counted ground truth of one frame of ``sequence`` (all ground truth takes
+    part in the Hungarian matching; ground truth with ``gt_counted`` False is matched but not
+    recorded)."""
     attributes = list(attributes) if attributes is not None else [UNKNOWN] * len(gt)
     if len(attributes) != len(gt):
         raise ValueError(f"frame {frame}: {len(gt)} ground-truth boxes but {len(attributes)} attributes")
@@ -118,9 +125,9 @@ def match_frame(frame: int, gt: Sequence[Box3D], pred: Sequence[Box3D], gt_count
             continue
         if i in matches:
             j, bev, iou3d = matches[i]
-            records.append(GroundTruthRecord(frame, box, attributes[i], pred[j], bev, iou3d))
+            records.append(GroundTruthRecord(frame, box, attributes[i], pred[j], bev, iou3d, sequence))
         else:
-            records.append(GroundTruthRecord(frame, box, attributes[i]))
+            records.append(GroundTruthRecord(frame, box, attributes[i], sequence=sequence))
     return records
 
 
@@ -154,6 +161,13 @@ def size_bias(records: Sequence[GroundTruthRecord]) -> dict[str, dict] | None:
     return out
 
 
+def car_count(records: Sequence[GroundTruthRecord]) -> int:
+    """Distinct cars among ``records``: ``(sequence, instance id)`` pairs, plus one per record
+    whose ground truth has no instance id (a negative one, :class:`Box3D`'s default)."""
+    named = {(r.sequence, r.gt.instance_id) for r in records if r.gt.instance_id >= 0}
+    return len(named) + sum(1 for r in records if r.gt.instance_id < 0)
+
+
 def summarise(records: Sequence[GroundTruthRecord]) -> dict:
     """Counts, IoUs and errors of ``records`` (JSON-ready; see the module docstring)."""
     matched = [r for r in records if r.matched]
@@ -165,6 +179,7 @@ def summarise(records: Sequence[GroundTruthRecord]) -> dict:
     size = np.array([np.abs(r.pred.size - r.gt.size) for r in matched]).reshape(-1, 3)
     return {
         "n_gt": n_gt,
+        "n_cars": car_count(records),
         "n_matched": len(matched),
         "missed_share": (n_gt - len(matched)) / n_gt if n_gt else None,
         "mean_iou_bev": _mean(bev),
@@ -227,9 +242,9 @@ class PairStatistics:
 
     def add_frame(self, gt: Sequence[Box3D], pred: Sequence[Box3D], gt_counted: Sequence[bool],
                   min_iou: float = 0.0, attributes: Sequence[CarAttributes] | None = None,
-                  frame: int = 0) -> None:
-        """Match one frame (:func:`match_frame`) and keep its records."""
-        self.records += match_frame(frame, gt, pred, gt_counted, min_iou, attributes)
+                  frame: int = 0, sequence: str = "") -> None:
+        """Match one frame of ``sequence`` (:func:`match_frame`) and keep its records."""
+        self.records += match_frame(frame, gt, pred, gt_counted, min_iou, attributes, sequence)
 
     def summary(self) -> dict[str, dict]:
         """:func:`summarise` of all records and of the static / dynamic ground truth."""

@@ -113,6 +113,8 @@ class FrameBoxes:
     pred_score: np.ndarray
     pred_height: np.ndarray
     gt_attributes: Sequence[CarAttributes] | None = None
+    #: The sequence's name: with the instance ids it tells the cars of pooled sequences apart.
+    sequence: str = ""
 
     def __post_init__(self) -> None:
         for name in ("gt_height", "pred_score", "pred_height"):
@@ -185,7 +187,7 @@ def evaluate_frames(frames: Sequence[FrameBoxes], config: EvalConfig | None = No
     pairs = PairStatistics()
     for f in frames:
         pairs.add_frame(f.gt, f.pred, f.gt_height > config.pair_min_height, config.pair_min_iou,
-                        f.gt_attributes, f.frame)
+                        f.gt_attributes, f.frame, f.sequence)
     counts = {d: {"n_gt": int(sum(np.count_nonzero(f.gt_height > h) for f in frames)),
                   "n_pred": int(sum(np.count_nonzero(f.pred_height >= h) for f in frames))}
               for d, h in config.min_height.items()}
@@ -274,7 +276,7 @@ def sequence_frames(pred_dir: str | os.PathLike, gt_root: str | os.PathLike, seq
             pred, score, height = [], np.empty(0), np.empty(0)
         gt_attributes = [attributes.lookup(f, b.instance_id) for b in gt] if attributes else None
         evaluated.append(FrameBoxes(frame=f, gt=gt, gt_height=gt_height, pred=pred, pred_score=score,
-                                    pred_height=height, gt_attributes=gt_attributes))
+                                    pred_height=height, gt_attributes=gt_attributes, sequence=seq.name))
     info = {"sequence": seq.name, "prediction_dir": str(label_dir), "frames": selected,
             "frames_without_predictions": [f for f in selected if f not in files],
             "attributes": str(attributes.path) if attributes else None}

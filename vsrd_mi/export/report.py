@@ -204,11 +204,11 @@ def evaluation_html(result: dict) -> str:
             rows.append([f"{label}@{thr}"] + [_num(by_diff[d][k], ".2f") for k in ("R40", "AOS_R40")
                                               for d in ("easy", "hard")])
     ap = _table(["", "AP Easy R40", "AP Hard R40", "AOS Easy R40", "AOS Hard R40"], rows, "eval")
-    pair_rows = [[_esc(g), str(s["n_gt"]), str(s["n_matched"]), _num(s["missed_share"], ".0%"),
+    pair_rows = [[_esc(g), str(s["n_gt"]), str(s["n_cars"]), str(s["n_matched"]), _num(s["missed_share"], ".0%"),
                   _num(s["mean_iou_3d"]), _num(s["mean_iou_bev"]), _num(s["centre_error_m"]),
                   _num(s["yaw_error_deg"], ".1f"), _num(s["heading_accuracy"], ".0%")]
                  for g, s in result["pairs"].items()]
-    pairs = _table(["group", "GT", "matched", "without box", "mean IoU 3D", "mean IoU BEV", "centre error m",
+    pairs = _table(["group", "GT", "cars", "matched", "without box", "mean IoU 3D", "mean IoU BEV", "centre error m",
                     "yaw error deg (mod 180)", "heading right"], pair_rows, "eval")
     return (f"<p>{len(result['frames'])} frame(s) evaluated; ground-truth 2D boxes: "
             f"<b>{_esc(protocol['gt_boxes'])}</b> "
