@@ -268,6 +268,25 @@ def test_per_box_corner_cuts_project_each_boxs_octagonal_prism():
         np.testing.assert_allclose([values(v)[k] for v in got[:4]], expected, atol=2e-3)
 
 
+@pytest.mark.parametrize("cut", [0.3, 0.58])
+def test_a_cut_past_the_cap_keeps_the_octagon(cut):
+    """With mirrors the body is ``mirror`` narrower a side; a cut larger than the projection's
+    cap (0.3 of the box's half width times two, less the mirror: 0.492 m for a 2.04 m wide box)
+    is capped on both sides alike, so the body stays an octagon: the footprint is that of the
+    mirror-free body with the capped cut (independent vertex projection)."""
+    centre, size, yaw, mirror = np.array([0.5, 0.2, 12.0]), np.array([2.04, 1.5, 4.6]), 0.6, 0.12
+    field = field_of(centre[None], size[None], np.array([yaw]))
+    b = field.boxes()
+    lanes = losses.ProjectionLanes(np.array([0]), np.zeros(1), np.eye(4)[None], np.zeros((1, 4)), K, IMAGE_BOUNDS)
+    profile = CarProfile(clearance=0.25, overhang=0.2, corner=0.3, mirror=mirror, roof=1.0)
+    got = losses.projected_boxes(field.decode(), lanes, profile, corner=to_float([cut]))
+    capped = min(cut, 0.6 * 0.5 * b["size"][0][0] - mirror)
+    body = b["size"][0] - [2 * mirror, 0.0, 0.0]
+    expected = np_cut_corner_footprint(b["centre"][0], body, float(b["yaw"][0]), np.eye(4), 0.25,
+                                       0.2 * b["size"][0][2], capped)
+    np.testing.assert_allclose([values(v)[0] for v in got[:4]], expected, atol=2e-3)
+
+
 def test_projection_loss_gradient_of_the_corner_cut_matches_finite_differences():
     field, lanes = two_box_lanes()
     dec = field.decode()

@@ -113,7 +113,8 @@ class FrameBoxes:
     pred_score: np.ndarray
     pred_height: np.ndarray
     gt_attributes: Sequence[CarAttributes] | None = None
-    #: The sequence's name: with the instance ids it tells the cars of pooled sequences apart.
+    #: Names the sequence (its dataset root and name): with the instance ids it tells the cars of
+    #: pooled sequences apart, also of sequences of one name under different roots.
     sequence: str = ""
 
     def __post_init__(self) -> None:
@@ -276,7 +277,8 @@ def sequence_frames(pred_dir: str | os.PathLike, gt_root: str | os.PathLike, seq
             pred, score, height = [], np.empty(0), np.empty(0)
         gt_attributes = [attributes.lookup(f, b.instance_id) for b in gt] if attributes else None
         evaluated.append(FrameBoxes(frame=f, gt=gt, gt_height=gt_height, pred=pred, pred_score=score,
-                                    pred_height=height, gt_attributes=gt_attributes, sequence=seq.name))
+                                    pred_height=height, gt_attributes=gt_attributes,
+                                    sequence=f"{seq.root}/{seq.name}"))
     info = {"sequence": seq.name, "prediction_dir": str(label_dir), "frames": selected,
             "frames_without_predictions": [f for f in selected if f not in files],
             "attributes": str(attributes.path) if attributes else None}

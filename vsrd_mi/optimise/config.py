@@ -199,9 +199,12 @@ class CarProfile:
     #: projected body, which the loss closed by lengthening the box (narrower: by shortening it).
     #: The views of a passing camera see the car at different angles, each weighing length, width
     #: and cut differently, so they fix the cut too (docs/accuracy.md, "Each car's plan corners").
+    #: Nothing is fitted where ``corner`` is 0 (the box corners' recipe).
     fit_corner: bool = True
-    #: Upper bound of the fitted cut (metres): twice ``corner``, so the fit starts at the centre
-    #: of its range.
+    #: Upper bound of the fitted cut (metres; twice the default ``corner``, so that the default's
+    #: fit starts at the centre of its range). The projection also caps a cut at
+    #: ``MAX_PART_FRACTION`` of the box's smaller extent less ``mirror`` (0.42 m for a 1.8 m wide
+    #: box, :func:`~vsrd_mi.optimise.losses.projected_boxes`).
     corner_max: float = 0.6
     mirror: float = 0.12
     #: Share of the box's length over which the car reaches the box's top (centred).

@@ -174,7 +174,9 @@ def projected_boxes(dec: DecodedBoxes, lanes: ProjectionLanes, profile: CarProfi
     bumpers, which project below the mask in every view that sees an end of the car, and its top
     corners at the ends enclose the space over the bonnet and the boot or bed.
     ``corner`` (N, metres), where given, is each box's own plan-corner cut (fitted with the box,
-    :class:`~vsrd_mi.optimise.parameters.CornerRange`) in place of ``profile.corner``.
+    :class:`~vsrd_mi.optimise.parameters.CornerRange`) in place of ``profile.corner``. A cut is
+    at most :data:`MAX_PART_FRACTION` of the box's smaller extent less the mirror span (the body's
+    half width must keep some of its length: 0.42 m for a 1.8 m wide box).
     """
     boxes = LaneBoxes.gather(dec, lanes.box, lanes.dt)  # once: every part is built from it
     if profile is None or not profile.enabled:
@@ -183,6 +185,10 @@ def projected_boxes(dec: DecodedBoxes, lanes: ProjectionLanes, profile: CarProfi
     waist = profile.waist if profile.roof < 1.0 else 1.0  # outside the roof the body ends lower
     cut = profile.corner if corner is None else dr.gather(mi.Float, corner, lanes.box)
     if _cuts(cut):  # the body's plan: an octagon, the union of two crossed boxes
+        # one cut for both: box_corners caps each part's narrowing / shortening at
+        # MAX_PART_FRACTION of the extent, and a cut capped on one side only is no octagon
+        cap = 2.0 * MAX_PART_FRACTION * dr.minimum(boxes.half[0], boxes.half[2]) - body
+        cut = dr.minimum(cut, dr.maximum(cap, 0.0))
         parts = [box_corners(boxes, raise_bottom=profile.clearance, narrow=body + cut, keep_height=waist),
                  box_corners(boxes, raise_bottom=profile.clearance, shorten=cut, narrow=body,
                              keep_height=waist)]
