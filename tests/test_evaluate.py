@@ -25,7 +25,7 @@ from vsrd_mi.evaluate.matching import (
     count_at_threshold,
     orientation_similarity,
 )
-from vsrd_mi.evaluate.metrics import hungarian_pairs, yaw_error_mod_pi
+from vsrd_mi.evaluate.metrics import car_interval, hungarian_pairs, yaw_error_mod_pi
 from vsrd_mi.evaluate.sequence import (
     EvalConfig,
     FrameBoxes,
@@ -219,6 +219,47 @@ def test_car_count_names_each_car_once_across_frames_and_sequences():
     frames.append(dataclasses.replace(frame([car(x=8.0)], index=1), sequence="b"))
     s = evaluate_frames(frames)["pairs"]["all"]
     assert (s["n_gt"], s["n_cars"]) == (9, 5)
+
+
+def test_car_interval_resamples_cars_not_records():
+    """Ten records of a car 10 % long and one of a car 10 % short: the mean over records is
+    +8.2 %, but with two cars nothing says which is typical, so the interval over cars spans
+    nearly both; resampling the eleven records as independent ones would give a narrow one."""
+    values = np.array([0.1] * 10 + [-0.1])
+    lo, hi = car_interval(values, np.array([0] * 10 + [1]))
+    assert lo == pytest.approx(-0.1, abs=1e-9) and hi == pytest.approx(0.1, abs=1e-9)
+    lo_rec, hi_rec = car_interval(values, np.arange(11))
+    assert lo_rec > 0.0 and hi_rec == pytest.approx(0.1)
+    # one car: no spread between cars is known, the interval is its mean
+    assert car_interval(np.array([0.02, 0.04]), np.array([5, 5])) == pytest.approx((0.03, 0.03))
+    # many cars of one error each: the interval holds the mean and shrinks with the number of cars
+    rng = np.random.default_rng(1)
+    widths = []
+    for n in (10, 200):
+        v = rng.normal(0.05, 0.08, n)
+        lo, hi = car_interval(v, np.arange(n))
+        assert lo < v.mean() < hi
+        widths.append(hi - lo)
+    assert widths[1] < 0.4 * widths[0]
+    with pytest.raises(ValueError, match="car labels"):
+        car_interval(np.zeros(3), np.zeros(2))
+
+
+def test_size_bias_reports_an_interval_over_cars():
+    """The size bias of one car seen in three frames and another in one: the interval's ends are
+    the two cars' errors (a car either way round twice)."""
+    def named(iid, length, x=0.0):
+        return Box3D(centre=(x, 1.0, 20.0), size=(W, H, length), yaw=0.0, instance_id=iid)
+
+    frames = [dataclasses.replace(frame([named(1, L), named(2, L, x=5.0)],
+                                        [named(1, 1.1 * L), named(2, 0.9 * L, x=5.0)], [0.9, 0.9], index=0),
+                                  sequence="s")]
+    frames += [dataclasses.replace(frame([named(1, L)], [named(1, 1.1 * L)], [0.9], index=i), sequence="s")
+               for i in (1, 2)]
+    bias = evaluate_frames(frames)["pairs"]["all"]["size_bias"]["length"]
+    assert bias["mean_rel"] == pytest.approx((3 * 0.1 - 0.1) / 4)
+    assert bias["mean_rel_ci95"] == pytest.approx([-0.1, 0.1])
+    assert evaluate_frames(frames)["pairs"]["all"]["size_bias"]["height"]["mean_rel_ci95"] == pytest.approx([0, 0])
 
 
 def test_pair_statistics_split_static_dynamic():

@@ -33,6 +33,7 @@ import numpy as np
 
 from ..data.kitti360 import Sequence, sequence_name
 from ..data.selection import select_targets
+from ..evaluate.cli import bias_interval_table
 from ..evaluate.sequence import EvalConfig, evaluate_frames, sequence_frames
 from ..synth.suites import SET_SEEDS, select, suite, write_suite
 
@@ -166,5 +167,9 @@ def main(args: argparse.Namespace) -> int:
     for name, ok in result["bounds"].items():
         key = BOUNDS[name][0]
         print(f"{'PASS' if ok else 'FAIL' if ok is not None else '  - '}  {name:42s} {result['figures'][key]}")
+    classes = result["pooled"]["breakdown"].get("by_class")
+    if classes:
+        print("size bias by vehicle class, 95 % interval over cars:")
+        print("\n".join(bias_interval_table(classes)))
     print(f"seconds per target: mean {result['seconds_per_target']['mean']:.1f}; wrote {path}")
     return 0

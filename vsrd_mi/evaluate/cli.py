@@ -59,6 +59,24 @@ def _bias(summary: dict, extent: str) -> str:
     return "-" if bias is None else f"{100.0 * bias[extent]['mean_rel']:+.1f}%"
 
 
+def _bias_interval(summary: dict, extent: str) -> str:
+    bias = summary.get("size_bias")
+    if bias is None:
+        return "-"
+    b = bias[extent]
+    lo, hi = b["mean_rel_ci95"]
+    return f"{100.0 * b['mean_rel']:+.1f}% [{100.0 * lo:+.1f}, {100.0 * hi:+.1f}]"
+
+
+def bias_interval_table(groups: dict) -> list[str]:
+    """Rows of the signed size bias with its 95 % interval over cars, per group."""
+    lines = [f"{'':12s}{'cars':>6s}{'dL [95 % over cars]':>26s}{'dW':>26s}{'dH':>26s}"]
+    for name, s in groups.items():
+        lines.append(f"{name:12s}{s['n_cars']:6d}" + "".join(f"{_bias_interval(s, e):>26s}"
+                                                             for e in ("length", "width", "height")))
+    return lines
+
+
 def _ap_tables(result: dict) -> list[str]:
     lines: list[str] = []
     for curve, columns in AP_COLUMNS.items():
@@ -117,6 +135,10 @@ def format_table(result: dict) -> str:
             continue
         lines += ["", f"By {title}:", _summary_header("")]
         lines += [_summary_row(name, s) for name, s in groups.items()]
+        if key == "by_class":
+            lines += ["", "Size bias by vehicle class, with a 95 % interval from resampling the cars "
+                          "(a class's records are few cars, each counted once per frame):"]
+            lines += bias_interval_table(groups)
     return "\n".join(lines)
 
 

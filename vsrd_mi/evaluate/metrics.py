@@ -21,7 +21,11 @@ for any list of records:
   on the full circle (front and back told apart);
 * ``size_error_m``: mean absolute error of the full (w, h, l) extents (metres), per axis;
 * ``size_bias``: signed error prediction - truth of ``length``, ``width``, ``height``, each with
-  ``mean_m``, ``median_m`` (metres) and ``mean_rel``, ``median_rel`` (relative to the truth).
+  ``mean_m``, ``median_m`` (metres), ``mean_rel``, ``median_rel`` (relative to the truth) and
+  ``mean_rel_ci95``: a 95 % interval of ``mean_rel`` from resampling the *cars* (a cluster
+  bootstrap, :func:`car_interval`): the records of one car share its error (a parked car's fused
+  box is written into every frame that sees it), so a class of 30 records may hold 5 cars and
+  its mean moves with them.
 
 :class:`PairStatistics` collects the records of a sequence and splits them by ground truth
 (static / dynamic) and, in :meth:`PairStatistics.breakdowns`, by vehicle class, distance,
@@ -50,6 +54,12 @@ HEADING_RIGHT_DEG = 90.0
 
 #: Names and ``Box3D.size`` indices of the three extents in the size bias.
 EXTENTS = (("length", 2), ("width", 0), ("height", 1))
+
+#: The size bias's interval over cars (:func:`car_interval`): coverage, resamples of the cars and
+#: the resampler's seed (fixed, so that a rerun reports the same interval).
+INTERVAL_LEVEL = 0.95
+INTERVAL_RESAMPLES = 2000
+INTERVAL_SEED = 0
 
 
 @dataclass(frozen=True)
@@ -152,20 +162,55 @@ def size_bias(records: Sequence[GroundTruthRecord]) -> dict[str, dict] | None:
         return None
     pred = np.array([r.pred.size for r in matched])
     gt = np.array([r.gt.size for r in matched])
+    cars = car_labels(matched)
     out = {}
     for name, axis in EXTENTS:
         diff = pred[:, axis] - gt[:, axis]
         rel = diff / gt[:, axis]
         out[name] = {"mean_m": float(diff.mean()), "median_m": float(np.median(diff)),
-                     "mean_rel": float(rel.mean()), "median_rel": float(np.median(rel))}
+                     "mean_rel": float(rel.mean()), "median_rel": float(np.median(rel)),
+                     "mean_rel_ci95": list(car_interval(rel, cars))}
     return out
 
 
+def car_labels(records: Sequence[GroundTruthRecord]) -> np.ndarray:
+    """One integer per record naming its car: equal for the records of one ``(sequence, instance
+    id)``, distinct for every record whose ground truth has no instance id (a negative one,
+    :class:`Box3D`'s default)."""
+    keys = [(r.sequence, r.gt.instance_id) if r.gt.instance_id >= 0 else ("", -1 - k)
+            for k, r in enumerate(records)]
+    index: dict[tuple, int] = {}
+    return np.array([index.setdefault(key, len(index)) for key in keys], dtype=np.int64)
+
+
 def car_count(records: Sequence[GroundTruthRecord]) -> int:
-    """Distinct cars among ``records``: ``(sequence, instance id)`` pairs, plus one per record
-    whose ground truth has no instance id (a negative one, :class:`Box3D`'s default)."""
-    named = {(r.sequence, r.gt.instance_id) for r in records if r.gt.instance_id >= 0}
-    return len(named) + sum(1 for r in records if r.gt.instance_id < 0)
+    """Distinct cars among ``records`` (:func:`car_labels`)."""
+    return len(set(car_labels(records).tolist())) if records else 0
+
+
+def car_interval(values: np.ndarray, cars: np.ndarray, level: float = INTERVAL_LEVEL,
+                 resamples: int = INTERVAL_RESAMPLES, seed: int = INTERVAL_SEED) -> tuple[float, float]:
+    """Percentile interval of the mean of ``values`` over records, when whole cars are resampled.
+
+    ``cars`` (same length) names each record's car (:func:`car_labels`). Each resample draws as
+    many cars as there are, with replacement, and takes the mean over all their records (the
+    statistic's own weighting: a car counts once per record). With one car the interval is that
+    car's mean: it has no width because nothing is known of the spread between cars.
+    """
+    values = np.asarray(values, dtype=np.float64).reshape(-1)
+    cars = np.asarray(cars).reshape(-1)
+    if values.size == 0 or values.size != cars.size:
+        raise ValueError(f"car_interval: need as many car labels as values (> 0), got {cars.size} and {values.size}")
+    if not 0.0 < level < 1.0 or resamples < 1:
+        raise ValueError(f"car_interval: level must be in (0, 1) and resamples >= 1, got {level}, {resamples}")
+    _, label = np.unique(cars, return_inverse=True)
+    sums = np.bincount(label, weights=values)
+    counts = np.bincount(label).astype(np.float64)
+    draws = np.random.default_rng(seed).integers(0, len(sums), size=(resamples, len(sums)))
+    means = sums[draws].sum(axis=1) / counts[draws].sum(axis=1)
+    tail = 50.0 * (1.0 - level)
+    lo, hi = np.percentile(means, [tail, 100.0 - tail])
+    return float(lo), float(hi)
 
 
 def summarise(records: Sequence[GroundTruthRecord]) -> dict:
