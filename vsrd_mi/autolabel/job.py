@@ -117,7 +117,9 @@ def process_target(task: TargetTask) -> TargetResult:
         "sources": [int(s) for s in spec.sources], "selection_note": spec.note, "initialisation": note,
         "config": cfg.to_dict(), "steps": result.steps, "seconds": result.seconds,
         "stopped_early": result.stopped_early,
-        "boxes": [{**h.box.to_dict(), "confidence": float(c), "heading": h.to_dict()} for h, c in zip(headings, conf)],
+        "boxes": [{**h.box.to_dict(), "confidence": float(c), "heading": h.to_dict(),
+                   "length_held_from_inside": bool(result.held_ends is not None and result.held_ends[n].any())}
+                  for n, (h, c) in enumerate(zip(headings, conf))],
         "loss": {k: {"first": v[0], "last": v[-1], "min": min(v)} for k, v in result.loss_history.items() if v},
     }
     rel = f"boxes/{int(task.frame):010d}.json"

@@ -87,6 +87,19 @@ def tight_width(length, height):
     return a + b * length + c * height
 
 
+@lru_cache(maxsize=1)
+def length_given_height() -> tuple[float, float, float]:
+    """``(a, b, sd)``: the least-squares line ``length = a + b * height`` through
+    :data:`CATALOGUE` and the standard deviation of its residuals (m). Taller vehicles are longer
+    (SUVs, vans, pickups), but height says little of a length: saloons and city cars share one
+    (the residuals' spread is 0.38 m). A prior for a length nothing else measures."""
+    design = np.array([[1.0, v.height] for v in CATALOGUE])
+    target = np.array([v.length for v in CATALOGUE])
+    coef, *_ = np.linalg.lstsq(design, target, rcond=None)
+    residuals = target - design @ coef
+    return float(coef[0]), float(coef[1]), float(np.sqrt(np.mean(residuals ** 2)))
+
+
 def mirror_span(model: str) -> float:
     """Width the door mirrors add to the body of catalogue vehicle ``model`` (m); KeyError naming
     the model when the catalogue has no such vehicle."""
@@ -101,4 +114,5 @@ def fit_residuals() -> np.ndarray:
     return np.array([v.width_mirrors - tight_width(v.length, v.height) for v in CATALOGUE])
 
 
-__all__ = ["CATALOGUE", "VehicleDimensions", "fit_residuals", "mirror_span", "tight_width", "width_coefficients"]
+__all__ = ["CATALOGUE", "VehicleDimensions", "fit_residuals", "length_given_height", "mirror_span", "tight_width",
+           "width_coefficients"]

@@ -424,6 +424,38 @@ class HeadingConfig:
 
 
 @dataclass(frozen=True)
+class HiddenLengthConfig:
+    """Lengths the masks hold from inside only (not in the paper;
+    :mod:`vsrd_mi.optimise.hidden_length`): after the optimisation, a box whose end is hidden in
+    every view and held only where the visible part ends is lengthened to the mean length of
+    vehicles at least that long and as tall (the catalogue's lengths given heights)."""
+
+    enabled: bool = True
+    #: How far (m) each end is moved out and in to see what holds it: a few pixels at 20-60 m.
+    probe: float = 0.2
+    #: An end is held from inside only when moving it out raises the box's projection loss,
+    #: summed over its lanes, by less than this (no view's closed side measures the end; moving
+    #: it also moves the roof and wheel parts of the car profile a little, which closed tops and
+    #: bottoms feel) ...
+    free_cost: float = 0.25
+    #: ... and moving it in raises the box's projection loss, summed over its lanes, by at least
+    #: this much (the loss's units: a closed side 1.5 px off costs 1 with the default Huber
+    #: transition of 1 px).
+    min_cost: float = 0.5
+    #: ... in at most this share of the views that see the box (an occluder's edge sweeps along
+    #: a hidden end as the camera passes; a seen end that meets an occluder's edge in the image
+    #: holds in most views).
+    max_held_share: float = 0.5
+
+    def __post_init__(self) -> None:
+        if (self.probe <= 0 or self.min_cost <= 0 or not 0.0 < self.free_cost < self.min_cost
+                or not 0.0 < self.max_held_share <= 1.0):
+            raise ValueError(f"hidden_length: probe and min_cost must be > 0, free_cost in (0, min_cost) and "
+                             f"max_held_share in (0, 1], got {self.probe}, {self.min_cost}, {self.free_cost}, "
+                             f"{self.max_held_share}")
+
+
+@dataclass(frozen=True)
 class AutolabelConfig:
     """Everything the per-target optimisation needs; defaults are the fast default preset."""
 
@@ -475,6 +507,7 @@ class AutolabelConfig:
     heading: HeadingConfig = field(default_factory=HeadingConfig)
     axis: AxisConfig = field(default_factory=AxisConfig)
     surface: SurfaceConfig = field(default_factory=SurfaceConfig)
+    hidden_length: HiddenLengthConfig = field(default_factory=HiddenLengthConfig)
     #: The stereo initialisation's settings (used when ``init`` is on; docs/method.md §6), e.g.
     #: ``--set stereo_init.footprint.fit_quantile=0.5``.
     stereo_init: InitConfig = field(default_factory=InitConfig)

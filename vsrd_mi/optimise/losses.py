@@ -211,7 +211,17 @@ def projection_loss(dec: DecodedBoxes, lanes: ProjectionLanes, beta: float,
                     w_huber: float, w_diou: float, containment: bool = False,
                     excess: float = 0.0, profile: CarProfile | None = None,
                     corner: mi.Float | None = None) -> mi.Float:
-    """Mean over lanes of ``w_huber * sum_4 Huber(e_i) + w_diou * (1 - DIoU)``.
+    """Mean over lanes of :func:`projection_lane_loss`."""
+    if lanes.count == 0:
+        return mi.Float(0.0)
+    return mean(projection_lane_loss(dec, lanes, beta, w_huber, w_diou, containment, excess, profile, corner))
+
+
+def projection_lane_loss(dec: DecodedBoxes, lanes: ProjectionLanes, beta: float,
+                         w_huber: float, w_diou: float, containment: bool = False,
+                         excess: float = 0.0, profile: CarProfile | None = None,
+                         corner: mi.Float | None = None) -> mi.Float:
+    """Per lane: ``w_huber * sum_4 Huber(e_i) + w_diou * (1 - DIoU)``.
 
     ``symmetric`` (the paper, ``containment=False``): ``e = pred - mask box`` per coordinate.
     ``containment=True``: the part of the mask box that sticks out of the projected box counts
@@ -225,8 +235,6 @@ def projection_loss(dec: DecodedBoxes, lanes: ProjectionLanes, beta: float,
     the box from inside and ``excess`` only tightens it. ``profile``, ``corner``: see
     :func:`projected_boxes`.
     """
-    if lanes.count == 0:
-        return mi.Float(0.0)
     x1, y1, x2, y2, _ = projected_boxes(dec, lanes, profile, corner)
     pred = (x1, y1, x2, y2)
     tgt = lanes.target
@@ -249,7 +257,7 @@ def projection_loss(dec: DecodedBoxes, lanes: ProjectionLanes, beta: float,
     total = w_huber * h
     if w_diou > 0:
         total = total + w_diou * lanes.closed * (1.0 - boxes2d.diou(pred, tgt, xp=dr))
-    return mean(total)
+    return total
 
 
 def silhouette_loss(labels: list, targets: list, eps: float) -> mi.Float:

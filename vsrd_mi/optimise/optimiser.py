@@ -41,7 +41,7 @@ from ..geometry import boxes2d
 from ..geometry.boxes import Box3D
 from ..geometry.camera import image_bounds
 from ..scene.builder import integrator_dict, scene_dict
-from . import losses
+from . import hidden_length, losses
 from .config import AutolabelConfig, CarProfile, LossWeights
 from .parameters import VELOCITY_LATENT, BoxLatents, BoxRanges, CornerRange
 
@@ -200,6 +200,9 @@ class OptimisationResult:
     stopped_early: bool
     sdf_evaluations: int
     projected_lanes: int
+    #: (N, 2) per box, its ends (at ``+axis``, at ``-axis``) that the masks held from inside only
+    #: and the box's length was extended past (:mod:`.hidden_length`); None when not looked at.
+    held_ends: np.ndarray | None = None
 
 
 class BoxOptimiser:
@@ -360,14 +363,25 @@ class BoxOptimiser:
             if collecting:
                 gc.enable()
         self.recordings = frozen.n_recordings if frozen is not None else 0
-        self._write_boxes(opt_box, opt_vel)
+        corner = self._write_boxes(opt_box, opt_vel)
         for o in self._opt_rdf.values() if self._opt_rdf else ():
             self.params.update(o)
-        boxes = self.boxes()
+        boxes, held = self.boxes(), None
+        if cfg.hidden_length.enabled:
+            h = cfg.hidden_length
+            boxes, held = hidden_length.extend_held_lengths(boxes, self._box_projection_loss(corner), h.probe,
+                                                            h.free_cost, h.min_cost, h.max_held_share)
         return OptimisationResult(boxes=boxes, instance_ids=self.obs.instance_ids[self.perm],
                                   steps=step + 1, seconds=_time.time() - t0, loss_history=history,
                                   stopped_early=stopped, sdf_evaluations=sdf_evals,
-                                  projected_lanes=self._lanes.count if self._lanes else 0)
+                                  projected_lanes=self._lanes.count if self._lanes else 0, held_ends=held)
+
+    def _box_projection_loss(self, corner: mi.Float | None) -> hidden_length.LaneLoss:
+        """The projection loss on every lane of every frame, as a function of the boxes' centres,
+        sizes and yaws (velocities and dynamic flags as optimised; ``corner`` the fitted cuts)."""
+        b = self.integrator.boxes()
+        return hidden_length.projection_box_loss(self._projection_lanes(), self.n, self.cfg.weights,
+                                                 self.cfg.car_profile, corner, b["velocity"], b["dynamic"])
 
     def _init_terms(self, velocity: bool) -> list:
         """The terms logged together as "init": the anchor (with the velocities where

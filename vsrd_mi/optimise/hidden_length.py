@@ -1,0 +1,201 @@
+"""Lengths the masks hold from inside only, and the length to label them with.
+
+Where a neighbour (or the image's edge) hides one end of a car in every view, the side of its
+mask boxes that the end would set is open, and the projection loss holds the box's end from
+inside only: the projection may not fall short of the visible part, but may reach as far as it
+likes behind the occluder (:func:`~vsrd_mi.optimise.losses.projection_lane_loss`). Started at
+the initialisation's typical length, such a box ends where the visible part of a longer car ends:
+the shortest length the masks allow. That is a lower bound, not an estimate, and labelled as one
+it makes every long vehicle whose end is hidden short (docs/accuracy.md, "Lengths held from
+inside only").
+
+:func:`end_costs` measures, per box and end, what moving the end out and in by a small distance
+costs the projection loss, the other end held, summed over the box's views and view by view.
+:func:`held_from_inside` reads from them the ends the data holds from inside only: moving the end
+out costs nothing measurable, moving it in does, and only in some views (as the camera passes,
+an occluder's edge sweeps along the hidden end, and only the views that see most of the car hold
+it; a car's own end that merely meets an occluder's edge in the image, its mask's side counted
+open all the same, holds in most views). Where moving either end in costs (the box is as short as
+the masks allow), :func:`expected_length` gives the box the mean length of vehicles at least as
+long as it is, under the catalogue's distribution of lengths given the box's height
+(:func:`~vsrd_mi.geometry.vehicle_sizes.length_given_height`): ``E[L | L >= L0]`` of a normal
+distribution truncated at ``L0``; :func:`lengthen` moves the held ends out to it. A box whose
+ends are both measured, or whose visible part is shorter than the box (nothing measured the
+length), keeps its length.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+from scipy.special import ndtr
+from vsrd_plugins.sdf import InstanceField
+
+from ..geometry.boxes import Box3D
+from ..geometry.vehicle_sizes import length_given_height
+from . import losses
+from .config import CarProfile, LossWeights
+
+#: ``Box3D.size`` index of the length.
+_LENGTH = 2
+#: ``Box3D.size`` index of the height.
+_HEIGHT = 1
+
+#: Per-lane losses (L,) of boxes given as centres (N, 3), sizes (N, 3) and yaws (N,); each lane
+#: is one box in one view (:class:`LaneLoss` says which).
+LaneLossFn = Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]
+
+
+@dataclass(frozen=True)
+class LaneLoss:
+    """A loss of boxes per lane (``fn``) and the box of each lane (``box``, (L,) ints)."""
+
+    fn: LaneLossFn
+    box: np.ndarray
+
+
+@dataclass(frozen=True)
+class EndCosts:
+    """Per box and end ((N, 2): the end at ``+axis``, at ``-axis``), what moving the end by the
+    probe costs: ``out`` and ``inward`` summed over the box's lanes, and ``held_share``, the share
+    of the box's lanes that moving the end in costs at least the ``free_cost`` of
+    :func:`end_costs`."""
+
+    out: np.ndarray
+    inward: np.ndarray
+    held_share: np.ndarray
+
+
+def axes(yaw: np.ndarray) -> np.ndarray:
+    """(N, 3) unit length axes ``(sin yaw, 0, cos yaw)`` (:class:`Box3D`'s convention)."""
+    yaw = np.asarray(yaw, dtype=np.float64).reshape(-1)
+    return np.stack([np.sin(yaw), np.zeros_like(yaw), np.cos(yaw)], axis=1)
+
+
+def moved_end(centre: np.ndarray, size: np.ndarray, yaw: np.ndarray, end: int, step: np.ndarray
+              ) -> tuple[np.ndarray, np.ndarray]:
+    """Centres and sizes of the boxes with end ``end`` (0: the one at ``+axis``, 1: at
+    ``-axis``) moved out by ``step`` (N,) metres (in where negative), the other end held."""
+    sign = 1.0 if end == 0 else -1.0
+    step = np.asarray(step, dtype=np.float64).reshape(-1)
+    centre = np.asarray(centre, dtype=np.float64) + (sign * 0.5 * step)[:, None] * axes(yaw)
+    size = np.array(size, dtype=np.float64)
+    size[:, _LENGTH] += step
+    return centre, size
+
+
+def end_costs(loss: LaneLoss, centre: np.ndarray, size: np.ndarray, yaw: np.ndarray, probe: float,
+              free_cost: float) -> EndCosts:
+    """What moving each box's ends out and in by ``probe`` metres costs (:class:`EndCosts`)."""
+    if probe <= 0:
+        raise ValueError(f"end_costs: probe must be > 0 m, got {probe}")
+    n = len(size)
+    lanes = np.bincount(loss.box, minlength=n).astype(np.float64)
+    base = np.asarray(loss.fn(centre, size, yaw), dtype=np.float64)
+    out, inward, share = np.zeros((n, 2)), np.zeros((n, 2)), np.zeros((n, 2))
+    for end in (0, 1):
+        for step in (probe, -probe):
+            c, s = moved_end(centre, size, yaw, end, np.full(n, step))
+            rise = np.asarray(loss.fn(c, s, yaw), dtype=np.float64) - base
+            total = np.bincount(loss.box, weights=rise, minlength=n)
+            if step > 0:
+                out[:, end] = total
+            else:
+                inward[:, end] = total
+                held = np.bincount(loss.box, weights=(rise >= free_cost).astype(np.float64), minlength=n)
+                share[:, end] = held / np.maximum(lanes, 1.0)
+    return EndCosts(out, inward, share)
+
+
+def held_from_inside(costs: EndCosts, free_cost: float, min_cost: float, max_held_share: float) -> np.ndarray:
+    """(N, 2) bool: ends that moving in costs at least ``min_cost`` (over the box's lanes), in at
+    most ``max_held_share`` of its lanes, and moving out less than ``free_cost``. Where the
+    length is a bound, an occluder's edge sweeps along the car as the camera passes and only the
+    views that see most of it hold the end; a car's own end that merely meets an occluder's
+    edge in the image (its mask's side then counts as open too) holds in most views."""
+    return (costs.inward >= min_cost) & (costs.out < free_cost) & (costs.held_share <= max_held_share)
+
+
+def expected_length(lower: np.ndarray, height: np.ndarray,
+                    prior: tuple[float, float, float] | None = None) -> np.ndarray:
+    """``E[L | L >= lower]`` (m) for lengths ``L`` distributed normally about ``a + b * height``
+    with standard deviation ``sd`` (``prior = (a, b, sd)``, by default
+    :func:`~vsrd_mi.geometry.vehicle_sizes.length_given_height`). Always at least ``lower``."""
+    a, b, sd = length_given_height() if prior is None else prior
+    if sd <= 0:
+        raise ValueError(f"expected_length: the prior's spread must be > 0 m, got {sd}")
+    lower = np.asarray(lower, dtype=np.float64)
+    mu = a + b * np.asarray(height, dtype=np.float64)
+    alpha = (lower - mu) / sd
+    # inverse Mills ratio phi(alpha) / (1 - Phi(alpha)), through the upper tail of alpha
+    tail = ndtr(-alpha)
+    density = np.exp(-0.5 * alpha ** 2) / np.sqrt(2.0 * np.pi)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        mills = np.where(tail > 1e-12, density / tail, alpha)  # far in the tail E -> lower
+    return np.maximum(mu + sd * mills, lower)
+
+
+def lengthen(boxes: list[Box3D], held: np.ndarray, length: np.ndarray) -> list[Box3D]:
+    """``boxes`` with the ends ``held`` (N, 2) moved out so that the box is ``length`` (N,) long
+    (the growth split between both ends where both are held); other boxes unchanged."""
+    held = np.asarray(held, dtype=bool).reshape(len(boxes), 2)
+    out = []
+    for box, ends, target in zip(boxes, held, np.asarray(length, dtype=np.float64).reshape(-1)):
+        grow = float(target) - float(box.size[_LENGTH])
+        if not ends.any() or grow <= 0:
+            out.append(box)
+            continue
+        centre, size = box.centre[None], np.asarray(box.size, dtype=np.float64)[None]
+        for end in np.flatnonzero(ends):
+            centre, size = moved_end(centre, size, np.array([box.yaw]), int(end),
+                                     np.array([grow / ends.sum()]))
+        out.append(Box3D(centre=centre[0], size=size[0], yaw=box.yaw, velocity=box.velocity,
+                         dynamic=box.dynamic, instance_id=box.instance_id))
+    return out
+
+
+def projection_box_loss(lanes: losses.ProjectionLanes, count: int, weights: LossWeights, profile: CarProfile,
+                        corner: mi.Float | None, velocity: np.ndarray, dynamic: np.ndarray) -> LaneLoss:
+    """The projection loss (:func:`~vsrd_mi.optimise.losses.projection_lane_loss`, with
+    ``weights``' settings) of ``count`` boxes on each of ``lanes``, as a function of their
+    centres, sizes and yaws; ``velocity`` (count, 3) and ``dynamic`` (count,) stay as given,
+    ``corner`` holds the boxes' fitted cuts (None: ``profile.corner``)."""
+    lane_box = np.array(lanes.box, dtype=np.int64)
+    fixed = {"velocity": mi.Float(np.ravel(velocity)), "dynamic": mi.Float(np.ravel(dynamic))}
+
+    def loss(centre: np.ndarray, size: np.ndarray, yaw: np.ndarray) -> np.ndarray:
+        params = {"centre": mi.Float(np.ravel(centre)), "size": mi.Float(np.ravel(size)),
+                  "yaw": mi.Float(np.ravel(yaw)), **fixed}
+        with dr.suspend_grad():
+            per_lane = losses.projection_lane_loss(
+                InstanceField.decode_parameters(params, count), lanes, weights.huber_beta, weights.projection_huber,
+                weights.projection_diou, containment=weights.projection_mode == "containment",
+                excess=weights.projection_excess, profile=profile, corner=corner)
+        return np.array(per_lane, dtype=np.float64)
+    return LaneLoss(loss, lane_box)
+
+
+def extend_held_lengths(boxes: list[Box3D], loss: LaneLoss, probe: float, free_cost: float,
+                        min_cost: float, max_held_share: float) -> tuple[list[Box3D], np.ndarray]:
+    """Boxes whose ends the data holds from inside only, lengthened to :func:`expected_length`
+    (see the module docstring); returns them and the (N, 2) ends found held."""
+    if not boxes:
+        return [], np.zeros((0, 2), dtype=bool)
+    centre = np.array([b.centre for b in boxes], dtype=np.float64)
+    size = np.array([b.size for b in boxes], dtype=np.float64)
+    yaw = np.array([b.yaw for b in boxes], dtype=np.float64)
+    costs = end_costs(loss, centre, size, yaw, probe, free_cost)
+    # the length is a bound only where moving either end in costs (the box is as short as the
+    # masks allow); an end held from inside beside one that could move in freely bounds nothing
+    pinned = np.all(costs.inward >= min_cost, axis=1)[:, None]
+    held = held_from_inside(costs, free_cost, min_cost, max_held_share) & pinned
+    target = expected_length(size[:, _LENGTH], size[:, _HEIGHT])
+    return lengthen(boxes, held, target), held
+
+
+__all__ = ["EndCosts", "LaneLoss", "LaneLossFn", "axes", "end_costs", "expected_length", "extend_held_lengths", "held_from_inside",
+           "lengthen", "moved_end", "projection_box_loss"]
