@@ -83,36 +83,40 @@ def footprint(box: Box3D, w2c: np.ndarray) -> np.ndarray:
     return np.stack([np.array(v, dtype=np.float64) for v in (x1, y1, x2, y2)], 1)
 
 
-@pytest.mark.parametrize("left_open, sweep, length, held", [
-    (True, True, 4.4, [True, False]),    # a neighbour hides the front end: the box ends where most is seen
-    (False, True, 4.4, [False, False]),  # the masks' front sides are the car's: its length is measured
-    (True, False, 4.4, [False, False]),  # the front end meets an occluder's edge in every view: a seen end
-    (True, True, 5.0, [False, False]),   # longer than the visible part: nothing holds the front end
+@pytest.mark.parametrize("left_open, sweep, length, height, held", [
+    (True, True, 4.8, 1.9, [True, False]),    # a neighbour hides the front end: the box ends where most is seen
+    (False, True, 4.8, 1.9, [False, False]),  # the masks' front sides are the car's: its length is measured
+    (True, False, 4.8, 1.9, [False, False]),  # the front end meets an occluder's edge in every view: a seen end
+    (True, True, 5.4, 1.9, [False, False]),   # longer than the visible part: nothing holds the front end
+    (True, True, 4.8, 1.2, [True, False]),    # a low car seen to 4.8 m: longer than most (the prior's mean 4.1 m)
+    (True, True, 3.6, 1.9, [False, False]),   # a tall one seen to 3.6 m: that says less than the prior
 ])
-def test_a_far_end_hidden_in_every_view_is_held_from_inside(left_open, sweep, length, held):
-    """A pickup 5.6 m long parked 6 m to the right, seen from behind by a passing camera. The
-    front end (+z) sets each mask box's left side. With ``sweep`` a neighbour hides the front end
-    in every view, more of it in some views than in others (3.8-4.4 m of the car seen), and the
-    left sides are open (``left_open``): the box that ends where the views see most of the car
-    is held from inside at the front only, by one view, and is lengthened to the mean length of
-    vehicles at least 4.4 m long and 1.9 m tall, its rear face kept. Without ``sweep`` every
-    view sees 4.4 m: an end that meets an occluder's edge in the image in every view is the
-    car's own, and is kept."""
+def test_a_far_end_hidden_in_every_view_is_held_from_inside(left_open, sweep, length, height, held):
+    """A vehicle parked 6 m to the right, seen from behind by an approaching camera. The front end
+    (+z) sets each mask box's left side. With ``sweep`` a neighbour hides the front end in every
+    view, more of it in some views than in others (0.6 m less to all of the box's ``length``
+    seen; for the longer box, of 4.8 m), and the left sides are open (``left_open``): the box
+    that ends where the views see most is held from inside at the front only, by one view, and
+    is lengthened to the mean length of vehicles at least that long and as tall, its rear face
+    kept, unless the bound lies more than ``min_score`` standard deviations below the prior's
+    mean. Without ``sweep`` every view sees the same length: an end that meets an occluder's edge
+    in the image in every view is the vehicle's own, and is kept."""
     w2c = forward_views()
-    rear = -1.0
-    seen = np.linspace(3.8, 4.4, len(w2c)) if sweep else np.full(len(w2c), 4.4)
-    target = np.stack([footprint(Box3D(centre=np.array([6.0, 0.6, rear + 0.5 * s]), size=np.array([2.1, 1.9, s]),
+    rear, seen_most = -1.0, min(length, 4.8)
+    seen = np.linspace(seen_most - 0.6, seen_most, len(w2c)) if sweep else np.full(len(w2c), seen_most)
+    target = np.stack([footprint(Box3D(centre=np.array([6.0, 0.6, rear + 0.5 * s]), size=np.array([2.1, height, s]),
                                        yaw=0.0), T[None])[0] for s, T in zip(seen, w2c)])
     sides = np.zeros((len(w2c), 4), bool)
     sides[:, 0] = left_open
     lanes = losses.ProjectionLanes(np.zeros(len(w2c), int), np.zeros(len(w2c)), w2c, target, K, IMAGE_BOUNDS, sides)
     loss = projection_box_loss(lanes, 1, LossWeights(), PROFILE, None, np.zeros((1, 3)), np.zeros(1))
-    box = Box3D(centre=np.array([6.0, 0.6, rear + 0.5 * length]), size=np.array([2.1, 1.9, length]), yaw=0.0)
-    out, ends = extend_held_lengths([box], loss, CFG.probe, CFG.free_cost, CFG.min_cost, CFG.max_held_share)
+    box = Box3D(centre=np.array([6.0, 0.6, rear + 0.5 * length]), size=np.array([2.1, height, length]), yaw=0.0)
+    out, ends = extend_held_lengths([box], loss, CFG.probe, CFG.free_cost, CFG.min_cost, CFG.max_held_share,
+                                    CFG.min_score)
     assert ends.tolist() == [held]
     if any(held):
-        want = expected_length(np.array([4.4]), np.array([1.9]))[0]
-        assert want > 4.6
+        want = expected_length(np.array([length]), np.array([height]))[0]
+        assert want > length + 0.1
         assert out[0].size[2] == pytest.approx(want)
         assert out[0].centre[2] - 0.5 * out[0].size[2] == pytest.approx(rear)
     else:

@@ -19,7 +19,10 @@ open all the same, holds in most views). Where moving either end in costs (the b
 the masks allow), :func:`expected_length` gives the box the mean length of vehicles at least as
 long as it is, under the catalogue's distribution of lengths given the box's height
 (:func:`~vsrd_mi.geometry.vehicle_sizes.length_given_height`): ``E[L | L >= L0]`` of a normal
-distribution truncated at ``L0``; :func:`lengthen` moves the held ends out to it. A box whose
+distribution truncated at ``L0``; :func:`lengthen` moves the held ends out to it. Only bounds no
+more than ``min_score`` standard deviations below the prior's mean count: for a bound far below
+it the truncated mean is the prior's mean, which would label a short car seen almost whole (a
+city car held at 3.1 m) as an average one. A box whose
 ends are both measured, or whose visible part is shorter than the box (nothing measured the
 length), keeps its length.
 """
@@ -120,6 +123,16 @@ def held_from_inside(costs: EndCosts, free_cost: float, min_cost: float, max_hel
     return (costs.inward >= min_cost) & (costs.out < free_cost) & (costs.held_share <= max_held_share)
 
 
+def standard_score(lower: np.ndarray, height: np.ndarray,
+                   prior: tuple[float, float, float] | None = None) -> np.ndarray:
+    """How many of the prior's standard deviations ``lower`` lies above the prior's mean length
+    for ``height`` (``prior`` as in :func:`expected_length`)."""
+    a, b, sd = length_given_height() if prior is None else prior
+    if sd <= 0:
+        raise ValueError(f"standard_score: the prior's spread must be > 0 m, got {sd}")
+    return (np.asarray(lower, dtype=np.float64) - (a + b * np.asarray(height, dtype=np.float64))) / sd
+
+
 def expected_length(lower: np.ndarray, height: np.ndarray,
                     prior: tuple[float, float, float] | None = None) -> np.ndarray:
     """``E[L | L >= lower]`` (m) for lengths ``L`` distributed normally about ``a + b * height``
@@ -130,7 +143,7 @@ def expected_length(lower: np.ndarray, height: np.ndarray,
         raise ValueError(f"expected_length: the prior's spread must be > 0 m, got {sd}")
     lower = np.asarray(lower, dtype=np.float64)
     mu = a + b * np.asarray(height, dtype=np.float64)
-    alpha = (lower - mu) / sd
+    alpha = standard_score(lower, height, (a, b, sd))
     # inverse Mills ratio phi(alpha) / (1 - Phi(alpha)), through the upper tail of alpha
     tail = ndtr(-alpha)
     density = np.exp(-0.5 * alpha ** 2) / np.sqrt(2.0 * np.pi)
@@ -180,7 +193,8 @@ def projection_box_loss(lanes: losses.ProjectionLanes, count: int, weights: Loss
 
 
 def extend_held_lengths(boxes: list[Box3D], loss: LaneLoss, probe: float, free_cost: float,
-                        min_cost: float, max_held_share: float) -> tuple[list[Box3D], np.ndarray]:
+                        min_cost: float, max_held_share: float, min_score: float
+                        ) -> tuple[list[Box3D], np.ndarray]:
     """Boxes whose ends the data holds from inside only, lengthened to :func:`expected_length`
     (see the module docstring); returns them and the (N, 2) ends found held."""
     if not boxes:
@@ -192,10 +206,13 @@ def extend_held_lengths(boxes: list[Box3D], loss: LaneLoss, probe: float, free_c
     # the length is a bound only where moving either end in costs (the box is as short as the
     # masks allow); an end held from inside beside one that could move in freely bounds nothing
     pinned = np.all(costs.inward >= min_cost, axis=1)[:, None]
-    held = held_from_inside(costs, free_cost, min_cost, max_held_share) & pinned
+    # a bound far below the prior's mean says nothing the prior does not, and the mean would
+    # label a short car seen almost whole as an average one
+    informative = standard_score(size[:, _LENGTH], size[:, _HEIGHT]) >= min_score
+    held = held_from_inside(costs, free_cost, min_cost, max_held_share) & pinned & informative[:, None]
     target = expected_length(size[:, _LENGTH], size[:, _HEIGHT])
     return lengthen(boxes, held, target), held
 
 
 __all__ = ["EndCosts", "LaneLoss", "LaneLossFn", "axes", "end_costs", "expected_length", "extend_held_lengths", "held_from_inside",
-           "lengthen", "moved_end", "projection_box_loss"]
+           "lengthen", "moved_end", "projection_box_loss", "standard_score"]

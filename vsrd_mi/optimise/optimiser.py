@@ -370,7 +370,8 @@ class BoxOptimiser:
         if cfg.hidden_length.enabled:
             h = cfg.hidden_length
             boxes, held = hidden_length.extend_held_lengths(boxes, self._box_projection_loss(corner), h.probe,
-                                                            h.free_cost, h.min_cost, h.max_held_share)
+                                                            h.free_cost, h.min_cost, h.max_held_share,
+                                                            h.min_score)
         return OptimisationResult(boxes=boxes, instance_ids=self.obs.instance_ids[self.perm],
                                   steps=step + 1, seconds=_time.time() - t0, loss_history=history,
                                   stopped_early=stopped, sdf_evaluations=sdf_evals,
