@@ -121,3 +121,10 @@ def test_a_far_end_hidden_in_every_view_is_held_from_inside(left_open, sweep, le
         assert out[0].centre[2] - 0.5 * out[0].size[2] == pytest.approx(rear)
     else:
         assert out[0] is box
+
+
+@pytest.mark.parametrize("field, value", [("probe", 0.0), ("min_cost", -1.0), ("free_cost", 0.6),
+                                          ("max_held_share", 0.0), ("max_held_share", 1.5)])
+def test_hidden_length_config_rejects_values_it_cannot_use(field, value):
+    with pytest.raises(ValueError, match="hidden_length"):
+        HiddenLengthConfig(**{field: value})

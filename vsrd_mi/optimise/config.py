@@ -593,7 +593,9 @@ def paper_config() -> AutolabelConfig:
     ``--set car_profile.clearance=0 --set car_profile.overhang=0 --set car_profile.corner=0
     --set car_profile.mirror=0 --set car_profile.roof=1``).
     The sequence-level consensus of parked cars (:class:`ConsensusConfig`, not in the paper)
-    runs after the targets in both presets (``--set consensus.enabled=false``).
+    runs after the targets in both presets (``--set consensus.enabled=false``), and so does the
+    lengthening of lengths the masks hold from inside only (:class:`HiddenLengthConfig`,
+    ``--set hidden_length.enabled=false``).
     """
     # the yaw priors stay the default's (stronger than the long schedule's size prior)
     weights = dataclasses.replace(LossWeights(), silhouette=PAPER_SILHOUETTE_WEIGHT,
