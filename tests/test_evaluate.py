@@ -259,6 +259,7 @@ def test_size_bias_reports_an_interval_over_cars():
     bias = evaluate_frames(frames)["pairs"]["all"]["size_bias"]["length"]
     assert bias["mean_rel"] == pytest.approx((3 * 0.1 - 0.1) / 4)
     assert bias["mean_rel_ci95"] == pytest.approx([-0.1, 0.1])
+    assert evaluate_frames(frames)["pairs"]["all"]["size_bias"]["n_cars"] == 2
     assert evaluate_frames(frames)["pairs"]["all"]["size_bias"]["height"]["mean_rel_ci95"] == pytest.approx([0, 0])
 
 

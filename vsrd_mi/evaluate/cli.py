@@ -72,8 +72,9 @@ def bias_interval_table(groups: dict) -> list[str]:
     """Rows of the signed size bias with its 95 % interval over cars, per group."""
     lines = [f"{'':12s}{'cars':>6s}{'dL [95 % over cars]':>26s}{'dW':>26s}{'dH':>26s}"]
     for name, s in groups.items():
-        lines.append(f"{name:12s}{s['n_cars']:6d}" + "".join(f"{_bias_interval(s, e):>26s}"
-                                                             for e in ("length", "width", "height")))
+        cars = s["size_bias"]["n_cars"] if s.get("size_bias") else 0
+        lines.append(f"{name:12s}{cars:6d}" + "".join(f"{_bias_interval(s, e):>26s}"
+                                                      for e in ("length", "width", "height")))
     return lines
 
 
@@ -136,8 +137,9 @@ def format_table(result: dict) -> str:
         lines += ["", f"By {title}:", _summary_header("")]
         lines += [_summary_row(name, s) for name, s in groups.items()]
         if key == "by_class":
-            lines += ["", "Size bias by vehicle class, with a 95 % interval from resampling the cars "
-                          "(a class's records are few cars, each counted once per frame):"]
+            lines += ["", "Size bias by vehicle class, with a 95 % interval from resampling the matched cars "
+                          "(a class's records are few cars, each counted once per frame; with under ~10 cars "
+                          "the interval is too narrow):"]
             lines += bias_interval_table(groups)
     return "\n".join(lines)
 

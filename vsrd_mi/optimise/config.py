@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 from dataclasses import dataclass, field
 
 from ..config_io import dataclass_from_dict
@@ -426,9 +427,13 @@ class HeadingConfig:
 @dataclass(frozen=True)
 class HiddenLengthConfig:
     """Lengths the masks hold from inside only (not in the paper;
-    :mod:`vsrd_mi.optimise.hidden_length`): after the optimisation, a box whose end is hidden in
-    every view and held only where the visible part ends is lengthened to the mean length of
-    vehicles at least that long and as tall (the catalogue's lengths given heights)."""
+    :mod:`vsrd_mi.optimise.hidden_length`): after each target's optimisation, a box whose end is
+    hidden in every view and held only where the visible part ends is lengthened to the mean
+    length of vehicles at least that long and as tall (the catalogue's lengths given heights).
+    It reads the open sides of the symmetric projection loss, so it runs only with
+    ``weights.projection_mode = "symmetric"`` and ``occlusion_aware`` on (the containment loss
+    lets every end move out freely). The costs below are the projection loss's (``weights``'
+    Huber and DIoU terms) summed over a box's views."""
 
     enabled: bool = True
     #: How far (m) each end is moved out and in to see what holds it: a few pixels at 20-60 m.
@@ -442,9 +447,9 @@ class HiddenLengthConfig:
     #: this much (the loss's units: a closed side 1.5 px off costs 1 with the default Huber
     #: transition of 1 px).
     min_cost: float = 0.5
-    #: ... in at most this share of the views that see the box (an occluder's edge sweeps along
-    #: a hidden end as the camera passes; a seen end that meets an occluder's edge in the image
-    #: holds in most views).
+    #: ... and in at most this share of the views that see the box does moving it in cost at
+    #: least ``free_cost`` (an occluder's edge sweeps along a hidden end as the camera passes;
+    #: a seen end that meets an occluder's edge in the image holds in most views).
     max_held_share: float = 0.5
     #: Only a bound at most this many of the prior's standard deviations below its mean length for
     #: the box's height is lengthened: from a bound far below, the truncated mean is the prior's
@@ -455,10 +460,10 @@ class HiddenLengthConfig:
 
     def __post_init__(self) -> None:
         if (self.probe <= 0 or self.min_cost <= 0 or not 0.0 < self.free_cost < self.min_cost
-                or not 0.0 < self.max_held_share <= 1.0):
-            raise ValueError(f"hidden_length: probe and min_cost must be > 0, free_cost in (0, min_cost) and "
-                             f"max_held_share in (0, 1], got {self.probe}, {self.min_cost}, {self.free_cost}, "
-                             f"{self.max_held_share}")
+                or not 0.0 < self.max_held_share <= 1.0 or not math.isfinite(self.min_score)):
+            raise ValueError(f"hidden_length: probe and min_cost must be > 0, free_cost in (0, min_cost), "
+                             f"max_held_share in (0, 1] and min_score finite, got {self.probe}, {self.min_cost}, "
+                             f"{self.free_cost}, {self.max_held_share}, {self.min_score}")
 
 
 @dataclass(frozen=True)
@@ -593,9 +598,9 @@ def paper_config() -> AutolabelConfig:
     ``--set car_profile.clearance=0 --set car_profile.overhang=0 --set car_profile.corner=0
     --set car_profile.mirror=0 --set car_profile.roof=1``).
     The sequence-level consensus of parked cars (:class:`ConsensusConfig`, not in the paper)
-    runs after the targets in both presets (``--set consensus.enabled=false``), and so does the
-    lengthening of lengths the masks hold from inside only (:class:`HiddenLengthConfig`,
-    ``--set hidden_length.enabled=false``).
+    runs after the targets in both presets (``--set consensus.enabled=false``); both presets also
+    lengthen, at the end of each target's optimisation, the lengths the masks hold from inside
+    only (:class:`HiddenLengthConfig`, ``--set hidden_length.enabled=false``).
     """
     # the yaw priors stay the default's (stronger than the long schedule's size prior)
     weights = dataclasses.replace(LossWeights(), silhouette=PAPER_SILHOUETTE_WEIGHT,

@@ -35,7 +35,7 @@ from typing import Callable
 import drjit as dr
 import mitsuba as mi
 import numpy as np
-from scipy.special import ndtr
+from scipy.special import erfcx
 from vsrd_plugins.sdf import InstanceField
 
 from ..geometry.boxes import Box3D
@@ -144,11 +144,9 @@ def expected_length(lower: np.ndarray, height: np.ndarray,
     lower = np.asarray(lower, dtype=np.float64)
     mu = a + b * np.asarray(height, dtype=np.float64)
     alpha = standard_score(lower, height, (a, b, sd))
-    # inverse Mills ratio phi(alpha) / (1 - Phi(alpha)), through the upper tail of alpha
-    tail = ndtr(-alpha)
-    density = np.exp(-0.5 * alpha ** 2) / np.sqrt(2.0 * np.pi)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        mills = np.where(tail > 1e-12, density / tail, alpha)  # far in the tail E -> lower
+    # inverse Mills ratio phi(alpha) / (1 - Phi(alpha)) = sqrt(2 / pi) / erfcx(alpha / sqrt(2)),
+    # the scaled complementary error function keeping it finite far in either tail
+    mills = np.sqrt(2.0 / np.pi) / erfcx(alpha / np.sqrt(2.0))
     return np.maximum(mu + sd * mills, lower)
 
 
@@ -181,6 +179,8 @@ def projection_box_loss(lanes: losses.ProjectionLanes, count: int, weights: Loss
     fixed = {"velocity": mi.Float(np.ravel(velocity)), "dynamic": mi.Float(np.ravel(dynamic))}
 
     def loss(centre: np.ndarray, size: np.ndarray, yaw: np.ndarray) -> np.ndarray:
+        if lanes.count == 0:
+            return np.zeros(0)
         params = {"centre": mi.Float(np.ravel(centre)), "size": mi.Float(np.ravel(size)),
                   "yaw": mi.Float(np.ravel(yaw)), **fixed}
         with dr.suspend_grad():
@@ -205,12 +205,13 @@ def extend_held_lengths(boxes: list[Box3D], loss: LaneLoss, probe: float, free_c
     costs = end_costs(loss, centre, size, yaw, probe, free_cost)
     # the length is a bound only where moving either end in costs (the box is as short as the
     # masks allow); an end held from inside beside one that could move in freely bounds nothing
-    pinned = np.all(costs.inward >= min_cost, axis=1)[:, None]
+    pinned = np.all(costs.inward >= min_cost, axis=1)
     # a bound far below the prior's mean says nothing the prior does not, and the mean would
     # label a short car seen almost whole as an average one
     informative = standard_score(size[:, _LENGTH], size[:, _HEIGHT]) >= min_score
-    held = held_from_inside(costs, free_cost, min_cost, max_held_share) & pinned & informative[:, None]
     target = expected_length(size[:, _LENGTH], size[:, _HEIGHT])
+    grows = target > size[:, _LENGTH]
+    held = held_from_inside(costs, free_cost, min_cost, max_held_share) & (pinned & informative & grows)[:, None]
     return lengthen(boxes, held, target), held
 
 

@@ -367,7 +367,7 @@ class BoxOptimiser:
         for o in self._opt_rdf.values() if self._opt_rdf else ():
             self.params.update(o)
         boxes, held = self.boxes(), None
-        if cfg.hidden_length.enabled:
+        if cfg.hidden_length.enabled and cfg.occlusion_aware and w.projection_mode == "symmetric":
             h = cfg.hidden_length
             boxes, held = hidden_length.extend_held_lengths(boxes, self._box_projection_loss(corner), h.probe,
                                                             h.free_cost, h.min_cost, h.max_held_share,
