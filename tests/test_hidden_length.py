@@ -115,8 +115,7 @@ def test_a_far_end_hidden_in_every_view_is_held_from_inside(left_open, sweep, le
     lanes = losses.ProjectionLanes(np.zeros(len(w2c), int), np.zeros(len(w2c)), w2c, target, K, IMAGE_BOUNDS, sides)
     loss = projection_box_loss(lanes, 1, LossWeights(), PROFILE, None, np.zeros((1, 3)), np.zeros(1))
     box = Box3D(centre=np.array([6.0, 0.6, rear + 0.5 * length]), size=np.array([2.1, height, length]), yaw=0.0)
-    out, ends = extend_held_lengths([box], loss, CFG.probe, CFG.free_cost, CFG.min_cost, CFG.max_held_share,
-                                    CFG.min_score)
+    out, ends = extend_held_lengths([box], loss, CFG)
     assert ends.tolist() == [held]
     if any(held):
         want = expected_length(np.array([length]), np.array([height]))[0]
@@ -152,8 +151,7 @@ def test_boxes_are_told_apart_by_their_own_lanes():
     loss = projection_box_loss(lanes, 2, LossWeights(), PROFILE, None, np.zeros((2, 3)), np.zeros(2))
     boxes = [Box3D(centre=np.array([6.0, 0.6, rear + 2.4]), size=np.array([2.1, height, 4.8]), yaw=0.0,
                    instance_id=k) for k in (7, 8)]
-    out, ends = extend_held_lengths(boxes, loss, CFG.probe, CFG.free_cost, CFG.min_cost, CFG.max_held_share,
-                                    CFG.min_score)
+    out, ends = extend_held_lengths(boxes, loss, CFG)
     assert ends.tolist() == [[False, False], [True, False]]
     assert out[0] is boxes[0]
     assert out[1].instance_id == 8 and out[1].size[2] > 4.9

@@ -41,7 +41,7 @@ from vsrd_plugins.sdf import InstanceField
 from ..geometry.boxes import Box3D
 from ..geometry.vehicle_sizes import length_given_height
 from . import losses
-from .config import CarProfile, LossWeights
+from .config import CarProfile, HiddenLengthConfig, LossWeights
 
 #: ``Box3D.size`` index of the length.
 _LENGTH = 2
@@ -139,11 +139,9 @@ def expected_length(lower: np.ndarray, height: np.ndarray,
     with standard deviation ``sd`` (``prior = (a, b, sd)``, by default
     :func:`~vsrd_mi.geometry.vehicle_sizes.length_given_height`). Always at least ``lower``."""
     a, b, sd = length_given_height() if prior is None else prior
-    if sd <= 0:
-        raise ValueError(f"expected_length: the prior's spread must be > 0 m, got {sd}")
+    alpha = standard_score(lower, height, (a, b, sd))  # refuses a spread <= 0
     lower = np.asarray(lower, dtype=np.float64)
     mu = a + b * np.asarray(height, dtype=np.float64)
-    alpha = standard_score(lower, height, (a, b, sd))
     # inverse Mills ratio phi(alpha) / (1 - Phi(alpha)) = sqrt(2 / pi) / erfcx(alpha / sqrt(2)),
     # the scaled complementary error function keeping it finite far in either tail
     mills = np.sqrt(2.0 / np.pi) / erfcx(alpha / np.sqrt(2.0))
@@ -192,26 +190,27 @@ def projection_box_loss(lanes: losses.ProjectionLanes, count: int, weights: Loss
     return LaneLoss(loss, lane_box)
 
 
-def extend_held_lengths(boxes: list[Box3D], loss: LaneLoss, probe: float, free_cost: float,
-                        min_cost: float, max_held_share: float, min_score: float
+def extend_held_lengths(boxes: list[Box3D], loss: LaneLoss, cfg: HiddenLengthConfig
                         ) -> tuple[list[Box3D], np.ndarray]:
     """Boxes whose ends the data holds from inside only, lengthened to :func:`expected_length`
-    (see the module docstring); returns them and the (N, 2) ends found held."""
+    (see the module docstring; the thresholds are ``cfg``'s); returns them and the (N, 2) ends
+    found held."""
     if not boxes:
         return [], np.zeros((0, 2), dtype=bool)
     centre = np.array([b.centre for b in boxes], dtype=np.float64)
     size = np.array([b.size for b in boxes], dtype=np.float64)
     yaw = np.array([b.yaw for b in boxes], dtype=np.float64)
-    costs = end_costs(loss, centre, size, yaw, probe, free_cost)
+    costs = end_costs(loss, centre, size, yaw, cfg.probe, cfg.free_cost)
     # the length is a bound only where moving either end in costs (the box is as short as the
     # masks allow); an end held from inside beside one that could move in freely bounds nothing
-    pinned = np.all(costs.inward >= min_cost, axis=1)
+    pinned = np.all(costs.inward >= cfg.min_cost, axis=1)
     # a bound far below the prior's mean says nothing the prior does not, and the mean would
     # label a short car seen almost whole as an average one
-    informative = standard_score(size[:, _LENGTH], size[:, _HEIGHT]) >= min_score
+    informative = standard_score(size[:, _LENGTH], size[:, _HEIGHT]) >= cfg.min_score
     target = expected_length(size[:, _LENGTH], size[:, _HEIGHT])
     grows = target > size[:, _LENGTH]
-    held = held_from_inside(costs, free_cost, min_cost, max_held_share) & (pinned & informative & grows)[:, None]
+    held = (held_from_inside(costs, cfg.free_cost, cfg.min_cost, cfg.max_held_share)
+            & (pinned & informative & grows)[:, None])
     return lengthen(boxes, held, target), held
 
 

@@ -368,20 +368,20 @@ class BoxOptimiser:
             self.params.update(o)
         boxes, held = self.boxes(), None
         if cfg.hidden_length.enabled and cfg.occlusion_aware and w.projection_mode == "symmetric":
-            h = cfg.hidden_length
-            boxes, held = hidden_length.extend_held_lengths(boxes, self._box_projection_loss(corner), h.probe,
-                                                            h.free_cost, h.min_cost, h.max_held_share,
-                                                            h.min_score)
+            boxes, held = hidden_length.extend_held_lengths(boxes, self._box_projection_loss(corner),
+                                                            cfg.hidden_length)
         return OptimisationResult(boxes=boxes, instance_ids=self.obs.instance_ids[self.perm],
                                   steps=step + 1, seconds=_time.time() - t0, loss_history=history,
                                   stopped_early=stopped, sdf_evaluations=sdf_evals,
                                   projected_lanes=self._lanes.count if self._lanes else 0, held_ends=held)
 
     def _box_projection_loss(self, corner: mi.Float | None) -> hidden_length.LaneLoss:
-        """The projection loss on every lane of every frame, as a function of the boxes' centres,
-        sizes and yaws (velocities and dynamic flags as optimised; ``corner`` the fitted cuts)."""
+        """The projection loss on every lane of every frame (the lanes of the last matching), as a
+        function of the boxes' centres, sizes and yaws (velocities and dynamic flags as optimised;
+        ``corner`` the fitted cuts)."""
         b = self.integrator.boxes()
-        return hidden_length.projection_box_loss(self._projection_lanes(), self.n, self.cfg.weights,
+        lanes = self._lanes if self._lanes is not None else self._projection_lanes()
+        return hidden_length.projection_box_loss(lanes, self.n, self.cfg.weights,
                                                  self.cfg.car_profile, corner, b["velocity"], b["dynamic"])
 
     def _init_terms(self, velocity: bool) -> list:
