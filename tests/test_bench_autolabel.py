@@ -14,6 +14,8 @@ import pytest
 from vsrd_mi.bench import autolabel as bench
 from vsrd_mi.errors import DataError
 from vsrd_mi.bench import autolabel_worker as worker
+from vsrd_mi.data.kitti360 import sequence_name
+from vsrd_mi.synth.suites import MANIFEST, SUITE_FORMAT, suite
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -35,6 +37,16 @@ def test_data_specs_are_checked(tmp_path):
     with pytest.raises(DataError, match="does not write into a given root"):
         bench.data_sequences(f"suite:validation:long@{tmp_path}", tmp_path)
     assert list(tmp_path.iterdir()) == []
+
+
+def test_suite_data_times_the_first_round_only(tmp_path):
+    # a written root's manifest stands in for its sequences: a given root is only read
+    rounds = [m for m in suite("validation") if m.scenario.name == "tight_rows"]
+    assert len(rounds) > 1
+    manifest = {"format": SUITE_FORMAT, "sequences": {sequence_name(m.sequence): {} for m in rounds}}
+    (tmp_path / MANIFEST).write_text(json.dumps(manifest))
+    got = bench.data_sequences(f"suite:validation:tight_rows@{tmp_path}", tmp_path)
+    assert got == [("validation/tight_rows", tmp_path.resolve(), rounds[0].sequence)]
 
 
 def test_differing_label_files_are_listed(tmp_path):

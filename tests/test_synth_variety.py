@@ -19,7 +19,8 @@ from vsrd_mi.synth.cars import bundled_mesh_paths, load_car_mesh
 from vsrd_mi.synth.config import ParkingConfig, SynthConfig
 from vsrd_mi.synth.layout import build_world
 from vsrd_mi.synth.render import RayCaster, pixel_directions
-from vsrd_mi.synth.suites import (EVEN_MIX, SCENARIOS, SET_SEEDS, SET_SEQUENCE_BASE, hard_config,
+from vsrd_mi.synth.suites import (EVEN_MIX, LONG_OFFSET, LONG_SEEDS, ROUND_STRIDE, SCENARIOS, SET_SEEDS,
+                                  SET_SEQUENCE_BASE, hard_config,
                                   select, suite)
 from vsrd_mi.synth.vehicles import (VEHICLE_CLASSES, VehicleConfig, VehicleDeck, build_vehicle,
                                     draw_profile)
@@ -294,12 +295,18 @@ def test_visibility_sampled_on_a_sparser_grid_stays_close(tmp_path):
 # suites
 # --------------------------------------------------------------------------------------------
 
+def _set_seeds(name: str) -> set[int]:
+    """Every seed of set ``name``, its rounds' and its long street's."""
+    return {seed for seeds in SET_SEEDS[name] for seed in seeds} | \
+        ({LONG_SEEDS[name]} if name in LONG_SEEDS else set())
+
+
 def test_suites_are_disjoint_and_deterministic():
     dev, val = suite("development"), suite("validation")
-    assert not set(SET_SEEDS["development"]) & set(SET_SEEDS["validation"])
+    assert not _set_seeds("development") & _set_seeds("validation")
     assert not {m.seed for m in dev} & {m.seed for m in val}
     assert not {m.sequence for m in dev} & {m.sequence for m in val}
-    assert [m.scenario.name for m in dev] == [m.scenario.name for m in val]
+    assert [m.scenario.name for m in dev] == [m.scenario.name for m in val if m.round == 0]
     assert [m.sequence for m in select(dev, None)] == \
         [SET_SEQUENCE_BASE["development"] + k for k in range(len(SCENARIOS))]
     assert [m.scenario.frames for m in select(val, "long")] == [200]
@@ -307,8 +314,9 @@ def test_suites_are_disjoint_and_deterministic():
     # the extra development streets: moving traffic only, seeds and numbers of their own, no long one
     traffic = suite("development-traffic")
     assert {m.scenario.name for m in traffic} == {"moving_traffic"} and all(m.default for m in traffic)
-    seeds = [set(v) for v in SET_SEEDS.values()]
+    seeds = [_set_seeds(name) for name in SET_SEEDS]
     assert sum(len(x) for x in seeds) == len(set().union(*seeds))
+    assert all(len({m.seed for m in suite(name)}) == len(suite(name)) for name in SET_SEEDS)
     numbers = [{m.sequence for m in suite(name)} for name in SET_SEEDS]
     assert sum(len(x) for x in numbers) == len(set().union(*numbers))
     with pytest.raises(ValueError, match="known"):
@@ -320,6 +328,24 @@ def test_suites_are_disjoint_and_deterministic():
                           first.seed, config=first.scenario.config) for _ in range(2)]
     assert [(c.vehicle_class, c.yaw, tuple(c.centre0)) for c in worlds[0].cars] == \
         [(c.vehicle_class, c.yaw, tuple(c.centre0)) for c in worlds[1].cars]
+
+
+def test_validation_rounds_repeat_every_preset_with_seeds_and_numbers_of_their_own():
+    members = select(suite("validation"), None)
+    assert len(members) == len(SET_SEEDS["validation"]) * len(SCENARIOS)
+    base = SET_SEQUENCE_BASE["validation"]
+    for r in range(len(SET_SEEDS["validation"])):
+        in_round = [m for m in members if m.round == r]
+        assert [m.scenario.name for m in in_round] == [s.name for s in SCENARIOS]
+        assert [m.sequence for m in in_round] == [base + ROUND_STRIDE * r + k for k in range(len(SCENARIOS))]
+    # the first round alone is the set as first reported; the long street keeps its number
+    assert [m.sequence for m in select(suite("validation"), None, 1)] == [base + k for k in range(len(SCENARIOS))]
+    assert [m.sequence for m in select(suite("validation"), "long")] == [base + LONG_OFFSET]
+    assert len(select(suite("validation"), "tight_rows")) == len(SET_SEEDS["validation"])
+    assert len(select(suite("validation"), "tight_rows", 1)) == 1
+    assert LONG_OFFSET < ROUND_STRIDE
+    with pytest.raises(ValueError, match="rounds"):
+        select(members, None, 0)
 
 
 @pytest.mark.slow

@@ -1,10 +1,10 @@
 """Accuracy on a synthetic set: ``vsrd-mi bench validation [--set validation|development|development-traffic]``.
 
-The sets of :mod:`vsrd_mi.synth.suites` (six hard streets each: mixed classes parked every way,
-angled and perpendicular bays, tight rows with occlusion, moving traffic, wide and tall vehicles;
-the development set is for tuning, the validation set only for reporting; ``development-traffic``
-adds four development streets of moving traffic) are generated once under
-``--root`` and autolabelled with the default configuration (or ``--config`` / ``--set``): per
+The sets of :mod:`vsrd_mi.synth.suites` (rounds of six hard streets: mixed classes parked every
+way, angled and perpendicular bays, tight rows with occlusion, moving traffic, wide and tall
+vehicles; the development set, one round, is for tuning, the validation set, three rounds, only
+for reporting; ``development-traffic`` adds four development streets of moving traffic) are
+generated once under ``--root`` (``--rounds N``: the first N rounds only) and autolabelled with the default configuration (or ``--config`` / ``--set``): per
 sequence the ``--targets`` middle target frames, in one ``vsrd-mi autolabel`` run each (so the
 consensus of parked cars fuses over them), ``--jobs`` sequences at a time. Every labelled frame is
 then evaluated (:mod:`vsrd_mi.evaluate`, the authors' mask protocol) and all sequences are pooled:
@@ -104,15 +104,16 @@ def check(figures: dict) -> dict[str, bool | None]:
 
 
 def run(set_name: str, root: Path, work: Path, targets: int, jobs: int, extra: list[str],
-        resume: bool = False) -> dict:
-    """Generate (if needed), autolabel and evaluate a set (see the module docstring).
+        resume: bool = False, rounds: int | None = None) -> dict:
+    """Generate (if needed), autolabel and evaluate a set, or its first ``rounds`` rounds (see
+    the module docstring).
 
     The sequences' folders under ``work`` are removed first unless ``resume``: autolabel resumes
     the targets it finds done with the same configuration, and a code change that the
     configuration does not record would otherwise be measured on the earlier labels.
     """
-    write_suite(root, set_name)
-    members = select(suite(set_name), None)
+    write_suite(root, set_name, rounds=rounds)
+    members = select(suite(set_name), None, rounds)
     plans = [(m.sequence, middle_targets(root, m.sequence, targets)) for m in members]
     if not resume:
         for m in members:
@@ -131,7 +132,8 @@ def run(set_name: str, root: Path, work: Path, targets: int, jobs: int, extra: l
     pooled = evaluate_frames(frames, config)
     figures = headline(pooled)
     seconds = [s for v in per_sequence.values() for s in v["target_seconds"]]
-    return {"set": set_name, "root": str(root), "targets_per_sequence": targets, "autolabel_args": extra,
+    return {"set": set_name, "root": str(root), "rounds": 1 + max(m.round for m in members),
+            "targets_per_sequence": targets, "autolabel_args": extra,
             "figures": figures, "bounds": check(figures), "per_sequence": per_sequence,
             "seconds_per_target": {"mean": float(np.mean(seconds)), "median": float(np.median(seconds))},
             "pooled": pooled, "machine": {"cpus": os.cpu_count()}}
@@ -145,6 +147,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         "(four more development streets with moving traffic)")
     p.add_argument("--root", type=Path, help="where the set is generated (default runs/bench-data/<set>)")
     p.add_argument("--work", type=Path, help="autolabel output (default runs/bench-<set>)")
+    p.add_argument("--rounds", type=int, help="only the set's first ROUNDS rounds of streets (default: all)")
     p.add_argument("--targets", type=int, default=4, help="middle target frames per sequence (0 = all)")
     p.add_argument("--jobs", type=int, default=1, help="sequences autolabelled at the same time")
     p.add_argument("--config", default="default", help="autolabel preset")
@@ -160,10 +163,12 @@ def main(args: argparse.Namespace) -> int:
     root = args.root or Path("runs/bench-data") / args.set_name
     work = args.work or Path(f"runs/bench-{args.set_name}")
     extra = ["--config", args.config] + [a for o in args.option for a in ("--set", o)]
-    result = run(args.set_name, root, work, args.targets, args.jobs, extra, args.resume)
+    result = run(args.set_name, root, work, args.targets, args.jobs, extra, args.resume, args.rounds)
     path = args.json or Path("benchmarks") / f"{args.set_name}.json"
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(result, indent=1) + "\n")
+    print(f"{args.set_name}: {len(result['per_sequence'])} streets ({result['rounds']} round(s)), "
+          f"{args.targets or 'all'} target frames each")
     for name, ok in result["bounds"].items():
         key = BOUNDS[name][0]
         print(f"{'PASS' if ok else 'FAIL' if ok is not None else '  - '}  {name:42s} {result['figures'][key]}")

@@ -13,16 +13,18 @@ from .world import PlacementError
 def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
         "synth-suite", help="write the synthetic development or validation set (one KITTI-360 "
-                            "root, one sequence per preset)",
-        description="Write every preset of a set as a sequence of one KITTI-360 root (development "
-                    "sequences 100-105, validation 200-205; 'long', 109 / 209, only with --only "
-                    "long; development-traffic: four more moving-traffic streets, 110-113). Tune "
-                    "on development, report validation. A sequence whose manifest "
-                    "entry (OUT/suite.json) matches and whose files are complete is kept.")
+                            "root, one sequence per preset and round)",
+        description="Write every preset of a set, in each of its rounds, as a sequence of one "
+                    "KITTI-360 root (development sequences 100-105; validation three rounds, "
+                    "200-205, 210-215, 220-225; 'long', 109 / 209, only with --only long; "
+                    "development-traffic: four more moving-traffic streets, 110-113). Tune on "
+                    "development, report validation. A sequence whose manifest entry "
+                    "(OUT/suite.json) matches and whose files are complete is kept.")
     p.add_argument("out", help="dataset root to write (created if missing)")
     p.add_argument("--set", required=True, choices=sorted(SET_SEEDS), dest="set_name",
                    help="which seed set")
     p.add_argument("--only", metavar="NAME", help="write only this preset (e.g. tight_rows, long)")
+    p.add_argument("--rounds", type=int, help="only the first ROUNDS rounds (default: all)")
     p.add_argument("--force", action="store_true", help="write sequences again even when kept")
     p.add_argument("--mesh", action="append", default=None, metavar="PLY",
                    help="car mesh file (repeatable); default: the bundled CC0 meshes")
@@ -37,7 +39,8 @@ def run(args: argparse.Namespace) -> int:
                   end="" if done < total else "\n", file=sys.stderr, flush=True)
 
     try:
-        written = write_suite(args.out, args.set_name, args.only, args.force, args.mesh, progress)
+        written = write_suite(args.out, args.set_name, args.only, args.force, args.mesh, progress,
+                              args.rounds)
     except (DataError, PlacementError, ValueError) as exc:
         print(f"vsrd-mi synth-suite: error: {exc}", file=sys.stderr)
         return 2
