@@ -17,12 +17,15 @@ from vsrd_mi.optimise import losses
 from vsrd_mi.optimise.losses import to_float
 from vsrd_mi.optimise.config import CarProfile, HiddenLengthConfig, LossWeights
 from vsrd_mi.optimise.hidden_length import (
-    EndCosts, expected_length, extend_held_lengths, held_from_inside, moved_end, projection_box_loss)
+    EndCosts, LaneLoss, estimate_hidden_lengths, expected_length, free_ends, free_travel, held_from_inside, moved_end,
+    move_ends, projection_box_loss)
 
 K = np.array([[500.0, 0.0, 320.0], [0.0, 500.0, 240.0], [0.0, 0.0, 1.0]])
 IMAGE_BOUNDS = np.array([-0.5, -0.5, 1279.5, 479.5])
 PROFILE = CarProfile(clearance=0.25, overhang=0.2, corner=0.3, fit_corner=False, mirror=0.0, roof=1.0)
 CFG = HiddenLengthConfig()
+#: The ends held from inside alone (lengths no view measures left as they are).
+HELD_ONLY = HiddenLengthConfig(unmeasured=False)
 
 
 @pytest.mark.parametrize("lower, height", [(3.0, 1.5), (4.5, 1.45), (4.76, 1.9), (6.5, 1.5), (9.0, 1.5)])
@@ -115,8 +118,9 @@ def test_a_far_end_hidden_in_every_view_is_held_from_inside(left_open, sweep, le
     lanes = losses.ProjectionLanes(np.zeros(len(w2c), int), np.zeros(len(w2c)), w2c, target, K, IMAGE_BOUNDS, sides)
     loss = projection_box_loss(lanes, 1, LossWeights(), PROFILE, None, np.zeros((1, 3)), np.zeros(1))
     box = Box3D(centre=np.array([6.0, 0.6, rear + 0.5 * length]), size=np.array([2.1, height, length]), yaw=0.0)
-    out, ends = extend_held_lengths([box], loss, CFG)
-    assert ends.tolist() == [held]
+    result = estimate_hidden_lengths([box], loss, HELD_ONLY)
+    out, ends = result.boxes, result.held
+    assert ends.tolist() == [held] and not result.unmeasured.any()
     if any(held):
         want = expected_length(np.array([length]), np.array([height]))[0]
         assert want > length + 0.1
@@ -127,7 +131,7 @@ def test_a_far_end_hidden_in_every_view_is_held_from_inside(left_open, sweep, le
 
 
 @pytest.mark.parametrize("field, value", [("probe", 0.0), ("min_cost", -1.0), ("free_cost", 0.6),
-                                          ("max_held_share", 0.0), ("max_held_share", 1.5)])
+                                          ("max_held_share", 0.0), ("max_held_share", 1.5), ("min_length", 0.0)])
 def test_hidden_length_config_rejects_values_it_cannot_use(field, value):
     with pytest.raises(ValueError, match="hidden_length"):
         HiddenLengthConfig(**{field: value})
@@ -151,7 +155,84 @@ def test_boxes_are_told_apart_by_their_own_lanes():
     loss = projection_box_loss(lanes, 2, LossWeights(), PROFILE, None, np.zeros((2, 3)), np.zeros(2))
     boxes = [Box3D(centre=np.array([6.0, 0.6, rear + 2.4]), size=np.array([2.1, height, 4.8]), yaw=0.0,
                    instance_id=k) for k in (7, 8)]
-    out, ends = extend_held_lengths(boxes, loss, CFG)
-    assert ends.tolist() == [[False, False], [True, False]]
+    result = estimate_hidden_lengths(boxes, loss, CFG)
+    out, ends = result.boxes, result.held
+    assert ends.tolist() == [[False, False], [True, False]] and not result.unmeasured.any()
     assert out[0] is boxes[0]
     assert out[1].instance_id == 8 and out[1].size[2] > 4.9
+
+
+def hidden_front_loss(seen_most: float, height: float, rear: float = -1.0):
+    """The projection loss of one vehicle 6 m to the right of an approaching camera whose front
+    end (+z) a neighbour hides in every view, 0.6 m less of it seen in the first view than the
+    ``seen_most`` metres the last one sees (the mask boxes' left sides open)."""
+    w2c = forward_views()
+    seen = np.linspace(seen_most - 0.6, seen_most, len(w2c))
+    target = np.stack([footprint(Box3D(centre=np.array([6.0, 0.6, rear + 0.5 * s]), size=np.array([2.1, height, s]),
+                                       yaw=0.0), T[None])[0] for s, T in zip(seen, w2c)])
+    sides = np.zeros((len(w2c), 4), bool)
+    sides[:, 0] = True
+    lanes = losses.ProjectionLanes(np.zeros(len(w2c), int), np.zeros(len(w2c)), w2c, target, K, IMAGE_BOUNDS, sides)
+    return projection_box_loss(lanes, 1, LossWeights(), PROFILE, None, np.zeros((1, 3)), np.zeros(1))
+
+
+@pytest.mark.parametrize("length", [5.0, 5.4, 6.6])
+def test_a_free_end_moves_in_to_the_visible_part(length):
+    """A box reaching past the visible part's 4.8 m: its front end moves in at no cost (beyond
+    what the longer box cost) until it reaches where the views see most."""
+    loss, rear, height = hidden_front_loss(4.8, 1.9), -1.0, 1.9
+    centre, size = np.array([[6.0, 0.6, rear + 0.5 * length]]), np.array([[2.1, height, length]])
+    free = np.array([[True, False]])
+    travel = free_travel(loss, centre, size, np.zeros(1), free, 0.2, 0.5, 2.7)
+    # whole probe steps: the last one that kept the box at least 4.8 m long
+    assert travel[0, 1] == 0.0
+    assert length - travel[0, 0] == pytest.approx(4.8, abs=0.2 + 1e-9)
+    assert length - travel[0, 0] >= 4.8 - 1e-9
+    # never past the shortest length allowed
+    assert free_travel(loss, centre, size, np.zeros(1), free, 0.2, 0.5, length - 0.2)[0, 0] == pytest.approx(0.2)
+
+
+@pytest.mark.parametrize("length", [5.0, 5.2])
+def test_a_length_no_view_measures_takes_the_mean_above_the_visible_part(length):
+    """The same box where its front end is free (moving it out costs < ``free_cost``, in
+    nothing; a longer box costs more to lengthen, through the DIoU term): it takes the mean length of vehicles as tall and at
+    least as long as the visible part (~4.8 m), shortened or lengthened at its free front end,
+    its rear face kept; without the option it keeps its length."""
+    loss, rear, height = hidden_front_loss(4.8, 1.9), -1.0, 1.9
+    box = Box3D(centre=np.array([6.0, 0.6, rear + 0.5 * length]), size=np.array([2.1, height, length]), yaw=0.0)
+    result = estimate_hidden_lengths([box], loss, CFG)
+    assert result.unmeasured.tolist() == [True] and not result.held.any()
+    got = result.boxes[0]
+    low, high = expected_length(np.array([4.6, 4.8]), np.array([height, height]))
+    assert low - 1e-9 <= got.size[2] <= high + 1e-9
+    assert got.centre[2] - 0.5 * got.size[2] == pytest.approx(rear)
+    assert estimate_hidden_lengths([box], loss, HELD_ONLY).boxes[0] is box
+
+
+def test_free_ends_cost_nothing_either_way():
+    costs = EndCosts(out=np.array([[0.1, 3.0], [0.1, 0.1], [0.1, 0.1]]),
+                     inward=np.array([[0.2, 3.0], [2.0, 0.1], [0.6, 0.6]]),
+                     held_share=np.zeros((3, 2)))
+    assert free_ends(costs, 0.25, 0.5).tolist() == [[True, False], [False, True], [False, False]]
+
+
+def test_free_travel_stops_at_the_shortest_length():
+    """Two free ends of a box no lane sees move in independently down to ``min_length`` each;
+    the bound the estimate takes is never below it."""
+    loss = LaneLoss(lambda c, s, y: np.zeros(1), np.zeros(1, dtype=np.int64))
+    box = Box3D(centre=np.zeros(3), size=np.array([1.8, 1.5, 4.1]), yaw=0.3)
+    travel = free_travel(loss, box.centre[None], box.size[None], np.array([0.3]), np.array([[True, True]]), 0.2, 0.5, 2.7)
+    assert travel.tolist() == [[pytest.approx(1.4), pytest.approx(1.4)]]
+    result = estimate_hidden_lengths([box], loss, CFG)
+    assert result.unmeasured.tolist() == [True]
+    assert result.boxes[0].size[2] == pytest.approx(expected_length(np.array([2.7]), np.array([1.5]))[0])
+
+
+def test_move_ends_moves_each_face_on_its_own():
+    box = Box3D(centre=np.array([1.0, 0.8, 12.0]), size=np.array([1.8, 1.5, 4.0]), yaw=0.4, instance_id=3)
+    axis = np.array([np.sin(0.4), 0.0, np.cos(0.4)])
+    out = move_ends([box, box], np.array([[0.5, -0.3], [0.0, 0.0]]))
+    assert out[1] is box and out[0].instance_id == 3
+    assert out[0].size[2] == pytest.approx(4.2)
+    assert out[0].centre + 0.5 * out[0].size[2] * axis == pytest.approx(box.centre + 2.5 * axis)
+    assert out[0].centre - 0.5 * out[0].size[2] * axis == pytest.approx(box.centre - 1.7 * axis)

@@ -118,7 +118,9 @@ def process_target(task: TargetTask) -> TargetResult:
         "config": cfg.to_dict(), "steps": result.steps, "seconds": result.seconds,
         "stopped_early": result.stopped_early,
         "boxes": [{**h.box.to_dict(), "confidence": float(c), "heading": h.to_dict(),
-                   "length_held_from_inside": bool(result.held_ends is not None and result.held_ends[n].any())}
+                   "length_held_from_inside": bool(result.held_ends is not None and result.held_ends[n].any()),
+                   "length_unmeasured": bool(result.unmeasured_lengths is not None
+                                             and result.unmeasured_lengths[n])}
                   for n, (h, c) in enumerate(zip(headings, conf))],
         "loss": {k: {"first": v[0], "last": v[-1], "min": min(v)} for k, v in result.loss_history.items() if v},
     }

@@ -203,6 +203,9 @@ class OptimisationResult:
     #: (N, 2) per box, its ends (at ``+axis``, at ``-axis``) that the masks held from inside only
     #: and the box's length was extended past (:mod:`.hidden_length`); None when not looked at.
     held_ends: np.ndarray | None = None
+    #: (N,) per box, whether no view measured its length (an end free either way) and the length
+    #: was set from the prior above the shortest one the masks allow (:mod:`.hidden_length`).
+    unmeasured_lengths: np.ndarray | None = None
 
 
 class BoxOptimiser:
@@ -366,14 +369,16 @@ class BoxOptimiser:
         corner = self._write_boxes(opt_box, opt_vel)
         for o in self._opt_rdf.values() if self._opt_rdf else ():
             self.params.update(o)
-        boxes, held = self.boxes(), None
+        boxes, held, unmeasured = self.boxes(), None, None
         if cfg.hidden_length.enabled and cfg.occlusion_aware and w.projection_mode == "symmetric":
-            boxes, held = hidden_length.extend_held_lengths(boxes, self._box_projection_loss(corner),
+            lengths = hidden_length.estimate_hidden_lengths(boxes, self._box_projection_loss(corner),
                                                             cfg.hidden_length)
+            boxes, held, unmeasured = lengths.boxes, lengths.held, lengths.unmeasured
         return OptimisationResult(boxes=boxes, instance_ids=self.obs.instance_ids[self.perm],
                                   steps=step + 1, seconds=_time.time() - t0, loss_history=history,
                                   stopped_early=stopped, sdf_evaluations=sdf_evals,
-                                  projected_lanes=self._lanes.count if self._lanes else 0, held_ends=held)
+                                  projected_lanes=self._lanes.count if self._lanes else 0, held_ends=held,
+                                  unmeasured_lengths=unmeasured)
 
     def _box_projection_loss(self, corner: mi.Float | None) -> hidden_length.LaneLoss:
         """The projection loss on every lane of every frame (the lanes of the last matching), as a
