@@ -23,9 +23,10 @@ from vsrd_mi.optimise.hidden_length import (
 K = np.array([[500.0, 0.0, 320.0], [0.0, 500.0, 240.0], [0.0, 0.0, 1.0]])
 IMAGE_BOUNDS = np.array([-0.5, -0.5, 1279.5, 479.5])
 PROFILE = CarProfile(clearance=0.25, overhang=0.2, corner=0.3, fit_corner=False, mirror=0.0, roof=1.0)
-CFG = HiddenLengthConfig()
-#: The ends held from inside alone (lengths no view measures left as they are).
-HELD_ONLY = HiddenLengthConfig(unmeasured=False)
+#: Both steps: ends held from inside, and lengths no view measures (off by default).
+CFG = HiddenLengthConfig(unmeasured=True)
+#: The ends held from inside alone (the default: lengths no view measures left as they are).
+HELD_ONLY = HiddenLengthConfig()
 
 
 @pytest.mark.parametrize("lower, height", [(3.0, 1.5), (4.5, 1.45), (4.76, 1.9), (6.5, 1.5), (9.0, 1.5)])
@@ -207,6 +208,7 @@ def test_a_length_no_view_measures_takes_the_mean_above_the_visible_part(length)
     assert low - 1e-9 <= got.size[2] <= high + 1e-9
     assert got.centre[2] - 0.5 * got.size[2] == pytest.approx(rear)
     assert estimate_hidden_lengths([box], loss, HELD_ONLY).boxes[0] is box
+    assert not HELD_ONLY.unmeasured
 
 
 def test_free_ends_cost_nothing_either_way():

@@ -28,10 +28,12 @@ ends are both measured keeps its length.
 An end that moving either way costs nothing (:func:`free_ends`) is measured by no view: the
 optimisation leaves it where the initialisation's typical length put it, whatever the vehicle
 (development set: such boxes, about one in five, were off by 10 % on average, long vans at 4.5 m,
-a few boxes at 6.6 m). :func:`free_travel` moves each free end in, step by step, until the masks
-hold it: the shortest length the masks allow, a lower bound again. Such a box takes the same
-:func:`expected_length` of that bound (with no ``min_score`` guard: the length it had carried no
-measurement either), moving its free ends in or its unheld ends out (:func:`move_ends`).
+a few boxes at 6.6 m). With ``HiddenLengthConfig.unmeasured`` (off by default: it made city cars
+and moving cars worse on the validation set, docs/accuracy.md) :func:`free_travel` moves each
+free end in, step by step, until the masks hold it: the shortest length the masks allow, a lower
+bound again. Such a box takes the same :func:`expected_length` of that bound (with no
+``min_score`` guard: the length it had carried no measurement either), moving its free ends in
+or its unheld ends out (:func:`move_ends`).
 """
 
 from __future__ import annotations
