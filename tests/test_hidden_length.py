@@ -238,3 +238,34 @@ def test_move_ends_moves_each_face_on_its_own():
     assert out[0].size[2] == pytest.approx(4.2)
     assert out[0].centre + 0.5 * out[0].size[2] * axis == pytest.approx(box.centre + 2.5 * axis)
     assert out[0].centre - 0.5 * out[0].size[2] * axis == pytest.approx(box.centre - 1.7 * axis)
+
+
+def visible_part_loss(front: float, rear: float, weight: float = 10.0) -> LaneLoss:
+    """A lane loss of boxes along z (yaw 0) whose visible part spans ``rear``..``front``: it rises
+    as either end moves inside that span, and nothing holds an end outside it (both ends free)."""
+    def fn(centre: np.ndarray, size: np.ndarray, yaw: np.ndarray) -> np.ndarray:
+        ends_front = centre[:, 2] + 0.5 * size[:, 2]
+        ends_rear = centre[:, 2] - 0.5 * size[:, 2]
+        return weight * (np.maximum(front - ends_front, 0.0) + np.maximum(ends_rear - rear, 0.0))
+    return LaneLoss(fn, np.arange(1))
+
+
+@pytest.mark.parametrize("centre_z", [0.0, 0.5])
+def test_two_free_ends_shorten_without_entering_the_visible_part(centre_z):
+    """Both ends of a 6 m box free over a visible part of 4 m: each moves in as far as it may
+    (to the visible part, in whole probe steps), the box takes the mean above that bound, and the
+    shortening is split by how far each end may move, so neither face enters the visible part."""
+    loss = visible_part_loss(2.0, -2.0)
+    box = Box3D(centre=np.array([0.0, 0.6, centre_z]), size=np.array([1.8, 1.5, 6.0]), yaw=0.0)
+    travel = free_travel(loss, box.centre[None], box.size[None], np.zeros(1), np.array([[True, True]]),
+                         0.2, 0.5, 2.7)
+    front, rear = 3.0 + centre_z, -3.0 + centre_z
+    assert travel[0] == pytest.approx([np.floor((front - 2.0) / 0.2 + 1e-9) * 0.2,
+                                       np.floor((-2.0 - rear) / 0.2 + 1e-9) * 0.2])
+    result = estimate_hidden_lengths([box], loss, CFG)
+    got = result.boxes[0]
+    want = expected_length(np.array([6.0 - travel.sum()]), np.array([1.5]))[0]
+    assert result.unmeasured.tolist() == [True]
+    assert want < 6.0 and got.size[2] == pytest.approx(want)
+    assert got.centre[2] + 0.5 * got.size[2] >= 2.0 - 1e-9
+    assert got.centre[2] - 0.5 * got.size[2] <= -2.0 + 1e-9

@@ -338,7 +338,9 @@ def test_validation_rounds_repeat_every_preset_with_seeds_and_numbers_of_their_o
         in_round = [m for m in members if m.round == r]
         assert [m.scenario.name for m in in_round] == [s.name for s in SCENARIOS]
         assert [m.sequence for m in in_round] == [base + ROUND_STRIDE * r + k for k in range(len(SCENARIOS))]
-    # the first round alone is the set as first reported; the long street keeps its number
+    # the first round alone is the set as first reported (its seeds and numbers); the long
+    # street keeps its number
+    assert [m.seed for m in members if m.round == 0] == [7741, 7742, 7743, 7744, 7745, 7746]
     assert [m.sequence for m in select(suite("validation"), None, 1)] == [base + k for k in range(len(SCENARIOS))]
     assert [m.sequence for m in select(suite("validation"), "long")] == [base + LONG_OFFSET]
     assert len(select(suite("validation"), "tight_rows")) == len(SET_SEEDS["validation"])
@@ -367,13 +369,13 @@ def test_every_class_and_mesh_appears_in_both_sets():
 def test_synth_suite_cli_writes_and_keeps(tmp_path, capsys):
     out = tmp_path / "val"
     assert cli_main(["synth-suite", str(out), "--set", "validation", "--only", "moving_traffic",
-                     "--quiet"]) == 0
+                     "--rounds", "1", "--quiet"]) == 0
     assert "written" in capsys.readouterr().out
     seq = Sequence(out, 204)
     assert len(seq.frames) == SCENARIOS[4].frames
     assert read_attributes(attributes_path(out, seq.name))["frames"]
     assert cli_main(["synth-suite", str(out), "--set", "validation", "--only", "moving_traffic",
-                     "--quiet"]) == 0
+                     "--rounds", "1", "--quiet"]) == 0
     assert "kept" in capsys.readouterr().out
 
 

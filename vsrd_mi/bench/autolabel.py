@@ -148,7 +148,8 @@ def data_sequences(spec: str, data_dir: Path) -> list[tuple[str, Path, int]]:
             root = data_dir / set_name
             for preset in presets.split(",") if presets else [None]:
                 write_suite(root, set_name, only=preset, rounds=SUITE_ROUNDS)
-        return [(f"{set_name}/{m.scenario.name}", root, m.sequence) for m in members]
+        return [(f"{set_name}/{m.scenario.name}" + (f"-r{m.round}" if m.round else ""), root, m.sequence)
+                for m in members]
     values = args.split(",")
     if kind != "synth" or len(values) not in (3, 4) or not all(v.strip().isdigit() for v in values):
         raise ValueError(f"--data {spec!r}: expected 'suite:SET[:PRESET,...][@ROOT]', 'bundled' or "

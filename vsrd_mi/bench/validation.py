@@ -127,7 +127,8 @@ def run(set_name: str, root: Path, work: Path, targets: int, jobs: int, extra: l
         frames += seq_frames
         ev = evaluate_frames(seq_frames, config)
         per_sequence[sequence_name(member.sequence)] = {
-            "preset": member.scenario.name, "seed": member.seed, **r, "frames": info["frames"],
+            "preset": member.scenario.name, "round": member.round, "seed": member.seed, **r,
+            "frames": info["frames"],
             "target_seconds": target_seconds(work, member.sequence), "figures": headline(ev)}
     pooled = evaluate_frames(frames, config)
     figures = headline(pooled)
@@ -139,6 +140,14 @@ def run(set_name: str, root: Path, work: Path, targets: int, jobs: int, extra: l
             "pooled": pooled, "machine": {"cpus": os.cpu_count()}}
 
 
+def positive_int(text: str) -> int:
+    """An argparse type: an integer >= 1."""
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
+    return value
+
+
 def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser("validation", help="accuracy on the synthetic validation (or development) set",
                               description=__doc__.split("\n\n")[0])
@@ -147,7 +156,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         "(four more development streets with moving traffic)")
     p.add_argument("--root", type=Path, help="where the set is generated (default runs/bench-data/<set>)")
     p.add_argument("--work", type=Path, help="autolabel output (default runs/bench-<set>)")
-    p.add_argument("--rounds", type=int, help="only the set's first ROUNDS rounds of streets (default: all)")
+    p.add_argument("--rounds", type=positive_int, help="only the set's first ROUNDS rounds of streets, one street "
+                   "per preset each (default: all; not bench autolabel's --rounds, its timed repetitions)")
     p.add_argument("--targets", type=int, default=4, help="middle target frames per sequence (0 = all)")
     p.add_argument("--jobs", type=int, default=1, help="sequences autolabelled at the same time")
     p.add_argument("--config", default="default", help="autolabel preset")

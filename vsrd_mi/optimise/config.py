@@ -428,8 +428,8 @@ class HeadingConfig:
 class HiddenLengthConfig:
     """Lengths the masks hold from inside only (not in the paper;
     :mod:`vsrd_mi.optimise.hidden_length`): after each target's optimisation, a box whose end is
-    hidden in every view and held only where the visible part ends, or whose end no view
-    measures, takes the mean length of vehicles at least as long as the masks allow and as tall
+    hidden in every view and held only where the visible part ends, or (with ``unmeasured``,
+    off by default) whose end no view measures, takes the mean length of vehicles at least as long as the masks allow and as tall
     (the catalogue's lengths given heights).
     It reads the open sides of the symmetric projection loss, so it runs only with
     ``weights.projection_mode = "symmetric"`` and ``occlusion_aware`` on (the containment loss

@@ -19,13 +19,14 @@ open all the same, holds in most views). Where moving either end in costs (the b
 the masks allow), :func:`expected_length` gives the box the mean length of vehicles at least as
 long as it is, under the catalogue's distribution of lengths given the box's height
 (:func:`~vsrd_mi.geometry.vehicle_sizes.length_given_height`): ``E[L | L >= L0]`` of a normal
-distribution truncated at ``L0``; :func:`lengthen` moves the held ends out to it. Only bounds no
+distribution truncated at ``L0``; :func:`held_steps` moves the held ends out to it. Only bounds no
 more than ``min_score`` standard deviations below the prior's mean count: for a bound far below
 it the truncated mean is the prior's mean, which would label a short car seen almost whole (a
 city car held at 3.1 m) as an average one. A box whose
 ends are both measured keeps its length.
 
-An end that moving either way costs nothing (:func:`free_ends`) is measured by no view: the
+An end that moving out costs less than ``free_cost`` and moving in less than ``min_cost`` (the
+cost that counts as held; :func:`free_ends`) is measured by no view: the
 optimisation leaves it where the initialisation's typical length put it, whatever the vehicle
 (development set: such boxes, about one in five, were off by 10 % on average, long vans at 4.5 m,
 a few boxes at 6.6 m). With ``HiddenLengthConfig.unmeasured`` (off by default: it made city cars
@@ -176,13 +177,13 @@ def move_ends(boxes: list[Box3D], steps: np.ndarray) -> list[Box3D]:
     return out
 
 
-def lengthen(boxes: list[Box3D], held: np.ndarray, length: np.ndarray) -> list[Box3D]:
-    """``boxes`` with the ends ``held`` (N, 2) moved out so that the box is ``length`` (N,) long
-    (the growth split between both ends where both are held); other boxes unchanged."""
-    held = np.asarray(held, dtype=bool).reshape(len(boxes), 2)
-    current = np.array([float(b.size[_LENGTH]) for b in boxes])
-    grow = np.maximum(np.asarray(length, dtype=np.float64).reshape(-1) - current, 0.0)
-    return move_ends(boxes, held * (grow / np.maximum(held.sum(axis=1), 1))[:, None])
+def held_steps(held: np.ndarray, length: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """(N, 2) steps for :func:`move_ends` that take boxes of ``length`` (N,) to ``target`` (N,) by
+    moving their ``held`` (N, 2) ends out (the growth split between both ends where both are
+    held); no step where the target is not longer or no end is held."""
+    held = np.asarray(held, dtype=bool).reshape(-1, 2)
+    grow = np.maximum(np.asarray(target, dtype=np.float64) - np.asarray(length, dtype=np.float64), 0.0)
+    return held * (grow / np.maximum(held.sum(axis=1), 1))[:, None]
 
 
 def free_ends(costs: EndCosts, free_cost: float, min_cost: float) -> np.ndarray:
@@ -207,7 +208,7 @@ def free_travel(loss: LaneLoss, centre: np.ndarray, size: np.ndarray, yaw: np.nd
     if not free.any():
         return travel
     base = np.bincount(loss.box, weights=np.asarray(loss.fn(centre, size, yaw), dtype=np.float64), minlength=n)
-    most = int(np.floor(max(0.0, float(length[free.any(axis=1)].max()) - min_length) / probe + 1e-9))
+    most = int(np.floor(max(0.0, float(length[free.any(axis=1)].max()) - min_length) / probe + _TOLERANCE))
     for end in (0, 1):
         moving, least = free[:, end].copy(), base.copy()
         for k in range(1, most + 1):
@@ -277,23 +278,24 @@ def estimate_hidden_lengths(boxes: list[Box3D], loss: LaneLoss, cfg: HiddenLengt
     target = expected_length(length, height)
     held = (held_from_inside(costs, cfg.free_cost, cfg.min_cost, cfg.max_held_share)
             & (pinned & informative & (target > length))[:, None])
-    steps = held * (np.maximum(target - length, 0.0) / np.maximum(held.sum(axis=1), 1))[:, None]
+    steps = held_steps(held, length, target)
     unmeasured = np.zeros(n, dtype=bool)
     if cfg.unmeasured:
         free = free_ends(costs, cfg.free_cost, cfg.min_cost)
         travel = free_travel(loss, centre, size, yaw, free, cfg.probe, cfg.min_cost, cfg.min_length)
         bound = np.maximum(length - travel.sum(axis=1), np.minimum(cfg.min_length, length))
         change = np.where(free.any(axis=1), expected_length(bound, height) - length, 0.0)
+        change = np.where(np.abs(change) > _TOLERANCE, change, 0.0)
         # growth goes to the ends nothing holds from outside, shortening to the free ends in
         # proportion to how far each may move in (together at most the box's length less the bound)
-        movable_out = free | (costs.out < cfg.free_cost)
+        movable_out = costs.out < cfg.free_cost   # free ends among them
         share_out = movable_out / np.maximum(movable_out.sum(axis=1), 1)[:, None]
         share_in = travel / np.maximum(travel.sum(axis=1), 1e-12)[:, None]
         steps = steps + np.where((change > 0)[:, None], share_out, share_in) * change[:, None]
-        unmeasured = free.any(axis=1) & (np.abs(change) > 0)
+        unmeasured = change != 0.0
     return HiddenLengths(move_ends(boxes, steps), held, unmeasured)
 
 
 __all__ = ["EndCosts", "HiddenLengths", "LaneLoss", "LaneLossFn", "axes", "end_costs", "estimate_hidden_lengths",
-           "expected_length", "free_ends", "free_travel", "held_from_inside", "lengthen", "move_ends", "moved_end",
+           "expected_length", "free_ends", "free_travel", "held_from_inside", "held_steps", "move_ends", "moved_end",
            "projection_box_loss", "standard_score"]
