@@ -28,3 +28,7 @@ def test_two_runs_of_a_target_write_identical_labels(tmp_path):
         assert (outs[0] / "labels" / name).read_bytes() == (outs[1] / "labels" / name).read_bytes(), name
     boxes = [json.loads((out / "boxes" / "0000000021.json").read_text()) for out in outs]
     assert boxes[0]["boxes"] == boxes[1]["boxes"] and boxes[0]["loss"] == boxes[1]["loss"]
+    # each box says how its length was set: lengthened past an end held from inside, or (an
+    # option, off by default) from the prior where no view measured it
+    assert all(isinstance(b["length_held_from_inside"], bool) and b["length_unmeasured"] is False
+               for b in boxes[0]["boxes"])
