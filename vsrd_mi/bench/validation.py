@@ -4,8 +4,9 @@ The sets of :mod:`vsrd_mi.synth.suites` (rounds of six hard streets: mixed class
 way, angled and perpendicular bays, tight rows with occlusion, moving traffic, wide and tall
 vehicles; the development set, one round, is for tuning, the validation set, three rounds, only
 for reporting; ``development-traffic`` adds four development streets of moving traffic) are
-generated once under ``--root`` (``--rounds N``: the first N rounds only) and autolabelled with the default configuration (or ``--config`` / ``--set``): per
-sequence the ``--targets`` middle target frames, in one ``vsrd-mi autolabel`` run each (so the
+generated once under ``--root`` (``--rounds N``: the first N rounds only) and autolabelled with
+the default configuration (or ``--config`` / ``--set``): per sequence the ``--targets`` middle
+target frames, in one ``vsrd-mi autolabel`` run each (so the
 consensus of parked cars fuses over them), ``--jobs`` sequences at a time. Every labelled frame is
 then evaluated (:mod:`vsrd_mi.evaluate`, the authors' mask protocol) and all sequences are pooled:
 

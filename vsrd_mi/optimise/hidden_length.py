@@ -39,7 +39,7 @@ or its unheld ends out (:func:`move_ends`).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Callable
 
 import drjit as dr
@@ -71,6 +71,10 @@ class LaneLoss:
 
     fn: LaneLossFn
     box: np.ndarray
+
+    def per_box(self, values: np.ndarray, count: int) -> np.ndarray:
+        """(count,) sums of per-lane ``values`` (L,) over each box's lanes."""
+        return np.bincount(self.box, weights=np.asarray(values, dtype=np.float64), minlength=count)
 
 
 @dataclass(frozen=True)
@@ -109,20 +113,19 @@ def end_costs(loss: LaneLoss, centre: np.ndarray, size: np.ndarray, yaw: np.ndar
     if probe <= 0:
         raise ValueError(f"end_costs: probe must be > 0 m, got {probe}")
     n = len(size)
-    lanes = np.bincount(loss.box, minlength=n).astype(np.float64)
+    lanes = loss.per_box(np.ones(len(loss.box)), n)
     base = np.asarray(loss.fn(centre, size, yaw), dtype=np.float64)
     out, inward, share = np.zeros((n, 2)), np.zeros((n, 2)), np.zeros((n, 2))
     for end in (0, 1):
         for step in (probe, -probe):
             c, s = moved_end(centre, size, yaw, end, np.full(n, step))
             rise = np.asarray(loss.fn(c, s, yaw), dtype=np.float64) - base
-            total = np.bincount(loss.box, weights=rise, minlength=n)
+            total = loss.per_box(rise, n)
             if step > 0:
                 out[:, end] = total
             else:
                 inward[:, end] = total
-                held = np.bincount(loss.box, weights=(rise >= free_cost).astype(np.float64), minlength=n)
-                share[:, end] = held / np.maximum(lanes, 1.0)
+                share[:, end] = loss.per_box(rise >= free_cost, n) / np.maximum(lanes, 1.0)
     return EndCosts(out, inward, share)
 
 
@@ -172,8 +175,7 @@ def move_ends(boxes: list[Box3D], steps: np.ndarray) -> list[Box3D]:
         centre, size = box.centre[None], np.asarray(box.size, dtype=np.float64)[None]
         for end in np.flatnonzero(step):
             centre, size = moved_end(centre, size, np.array([box.yaw]), int(end), step[end:end + 1])
-        out.append(Box3D(centre=centre[0], size=size[0], yaw=box.yaw, velocity=box.velocity,
-                         dynamic=box.dynamic, instance_id=box.instance_id))
+        out.append(replace(box, centre=centre[0], size=size[0]))
     return out
 
 
@@ -207,7 +209,7 @@ def free_travel(loss: LaneLoss, centre: np.ndarray, size: np.ndarray, yaw: np.nd
     length = np.asarray(size, dtype=np.float64)[:, _LENGTH]
     if not free.any():
         return travel
-    base = np.bincount(loss.box, weights=np.asarray(loss.fn(centre, size, yaw), dtype=np.float64), minlength=n)
+    base = loss.per_box(loss.fn(centre, size, yaw), n)
     most = int(np.floor(max(0.0, float(length[free.any(axis=1)].max()) - min_length) / probe + _TOLERANCE))
     for end in (0, 1):
         moving, least = free[:, end].copy(), base.copy()
@@ -216,7 +218,7 @@ def free_travel(loss: LaneLoss, centre: np.ndarray, size: np.ndarray, yaw: np.nd
             if not moving.any():
                 break
             c, s = moved_end(centre, size, yaw, end, np.where(moving, -k * probe, 0.0))
-            total = np.bincount(loss.box, weights=np.asarray(loss.fn(c, s, yaw), dtype=np.float64), minlength=n)
+            total = loss.per_box(loss.fn(c, s, yaw), n)
             moving &= total - least < min_cost
             least = np.minimum(least, total)
             travel[moving, end] = k * probe

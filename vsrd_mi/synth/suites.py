@@ -191,9 +191,10 @@ def select(members: list[SuiteMember], only: str | None, rounds: int | None = No
     ``only`` (``long`` included; every round's)."""
     if rounds is not None and rounds < 1:
         raise ValueError(f"rounds must be >= 1, got {rounds}")
+    in_rounds = [m for m in members if rounds is None or m.round < rounds]
     if only is None:
-        return [m for m in members if m.default and (rounds is None or m.round < rounds)]
-    chosen = [m for m in members if m.scenario.name == only and (rounds is None or m.round < rounds)]
+        return [m for m in in_rounds if m.default]
+    chosen = [m for m in in_rounds if m.scenario.name == only]
     if not chosen:
         raise ValueError(f"no preset {only!r} (known: "
                          f"{', '.join(m.scenario.name for m in members)})")
