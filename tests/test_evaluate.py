@@ -817,3 +817,45 @@ def test_missing_sidecar_means_no_attributes(dataset):
     assert attrs.lookup(1, 26001) == CarAttributes("sedan", False, "angled", 30.0, 0.1, 0.0)
     assert attrs.lookup(7, 26003) == CarAttributes("van", True, None, None, None, None)
     assert attrs.lookup(0, 26099) == CarAttributes()
+
+
+def test_far_end_shift_sees_a_passing_car_but_not_the_length_of_one_straight_ahead():
+    from vsrd_mi.evaluate.observability import LENGTH_PROBE_M, LENGTH_SEEN_PX, far_end_shift
+    size = (IMG_W, IMG_H)
+    # straight ahead, the camera inside the strip its sides span and 0.2 m above its top: only
+    # the top edge moves, to the far top corners' new image row
+    ahead = Box3D(centre=(0.0, 1.0, 15.0), size=(1.8, 1.6, 4.2), yaw=0.0)
+    z_far = 15.0 + 2.1
+    expected = FX * 0.2 * (1.0 / z_far - 1.0 / (z_far + LENGTH_PROBE_M))
+    assert far_end_shift(ahead, K, size) == pytest.approx(expected, rel=1e-6)
+    assert far_end_shift(ahead, K, size) < LENGTH_SEEN_PX
+    # the same car facing away or towards the camera: the far end is the one moved
+    assert far_end_shift(dataclasses.replace(ahead, yaw=math.pi), K, size) == pytest.approx(expected, rel=1e-6)
+    # beside the lane: its side's far corner sets the box's right side
+    beside = Box3D(centre=(-3.0, 1.0, 12.0), size=(1.8, 1.5, 4.2), yaw=0.0)
+    x_side, z_far = -3.0 + 0.9, 12.0 + 2.1
+    expected = FX * x_side * (1.0 / (z_far + LENGTH_PROBE_M) - 1.0 / z_far)
+    assert far_end_shift(beside, K, size) == pytest.approx(expected, rel=1e-6)
+    assert far_end_shift(beside, K, size) > LENGTH_SEEN_PX
+    # behind the camera: not in the image
+    assert far_end_shift(dataclasses.replace(beside, centre=(-3.0, 1.0, -12.0)), K, size) is None
+    with pytest.raises(ValueError, match="probe"):
+        far_end_shift(beside, K, size, probe=0.0)
+
+
+def test_length_views_split_the_pairs_by_whether_a_view_sees_the_length(dataset, tmp_path, capsys):
+    pred = tmp_path / "pred"
+    for f in (0, 1, 2):
+        _write_predictions(pred, f, _camera_boxes(f), [0.9, 0.8, 0.7])
+    _write_instance_maps(dataset)
+    _write_sidecar(dataset, SIDECAR)
+    # car 1 stands beside the lane, car 3 drives straight ahead of the camera
+    result = evaluate_sequence(pred, dataset, 7, config=EvalConfig(length_views=True))
+    b = result["breakdown"]
+    assert list(b["by_length_view"]) == ["seen", "not seen"]
+    assert b["by_length_view"]["seen"]["n_gt"] == 3 and b["by_length_view"]["not seen"]["n_gt"] == 3
+    assert list(b["by_class_length_seen"]) == ["sedan"]
+    assert evaluate_sequence(pred, dataset, 7)["breakdown"]["by_length_view"] is None
+    assert main(["eval", "--pred", str(pred), "--gt", str(dataset), "--sequence", "7", "--length-views"]) == 0
+    table = capsys.readouterr().out
+    assert "sees its length" in table and "not seen" in table

@@ -42,6 +42,10 @@ class CarAttributes:
     angle_to_road_deg: float | None = None
     occlusion: float | None = None
     truncation: float | None = None
+    #: Not from the sidecar: the evaluation's measure of whether the views that label the car see
+    #: its length (px, :func:`~vsrd_mi.evaluate.observability.length_view_shift`; with
+    #: ``EvalConfig.length_views`` only).
+    length_view_px: float | None = None
 
 
 #: Attributes of a car the sidecar does not describe (or of every car without a sidecar).

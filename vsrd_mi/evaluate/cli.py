@@ -21,7 +21,9 @@ METRIC_LABELS = {METRIC_BEV: "AP_BEV", METRIC_3D: "AP_3D"}
 AOS_LABELS = {METRIC_BEV: "AOS(BEV", METRIC_3D: "AOS(3D"}
 #: Breakdown tables printed after the matched pairs (result key, title).
 BREAKDOWNS = (("by_class", "vehicle class"), ("by_distance", "distance"),
-              ("by_occlusion", "occlusion"), ("by_parking", "parking"))
+              ("by_occlusion", "occlusion"), ("by_parking", "parking"),
+              ("by_length_view", "whether a view that labels the car sees its length (--length-views)"),
+              ("by_class_length_seen", "vehicle class, cars whose length a view sees (--length-views)"))
 #: Table titles of the two precision curves (their definitions are in the JSON ``protocol``).
 CURVE_TITLES = {
     "exact": "AP, exact precision curve (every score threshold)",
@@ -146,7 +148,8 @@ def format_table(result: dict) -> str:
 
 def run(args: argparse.Namespace) -> int:
     """Entry point of ``vsrd-mi eval``; returns the exit code (1 on bad input)."""
-    config = EvalConfig(gt_boxes=args.gt_boxes, gt_visible_in_mask=args.visible_only)
+    config = EvalConfig(gt_boxes=args.gt_boxes, gt_visible_in_mask=args.visible_only,
+                        length_views=args.length_views)
     try:
         result = evaluate_sequence(args.pred, args.gt, args.sequence, frames=args.frames, config=config)
     except DataError as exc:
@@ -182,6 +185,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         "projected into the image. The output names the one used")
     p.add_argument("--visible-only", action="store_true",
                    help="with --gt-boxes projected: keep only GT cars present in the frame's instance map")
+    p.add_argument("--length-views", action="store_true",
+                   help="split the pairs by whether some view that labels the car sees its length: one "
+                        "whose 2D box moves by a pixel when the car's far end moves out 0.5 m (a car "
+                        "straight ahead in the lane shows only its rear); reads the instance maps the "
+                        "target selection walks for every frame")
     p.add_argument("--json", action="store_true", help="print the full result as JSON")
     func: Callable[[argparse.Namespace], int] = run
     p.set_defaults(func=func)

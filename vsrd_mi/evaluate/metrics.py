@@ -31,7 +31,9 @@ for any list of records:
 
 :class:`PairStatistics` collects the records of a sequence and splits them by ground truth
 (static / dynamic) and, in :meth:`PairStatistics.breakdowns`, by vehicle class, distance,
-occlusion and parking kind (:mod:`.attributes`). Means over no pairs are None.
+occlusion and parking kind (:mod:`.attributes`), and by whether a view that labels the car sees
+its length, also by class over the cars whose length is seen (:mod:`.observability`). Means over
+no pairs are None.
 """
 
 from __future__ import annotations
@@ -45,6 +47,7 @@ from scipy.optimize import linear_sum_assignment
 from ..geometry.boxes import Box3D, axis_difference, wrap_angle
 from ..geometry.iou3d import iou_matrices
 from .attributes import UNKNOWN, CarAttributes
+from .observability import LENGTH_SEEN_PX
 
 #: Names of the ground-truth groups in the statistics.
 GROUP_ALL, GROUP_STATIC, GROUP_DYNAMIC = "all", "static", "dynamic"
@@ -271,6 +274,22 @@ def breakdown(records: Sequence[GroundTruthRecord], key: Callable[[GroundTruthRe
     return {n: summarise(groups[n]) for n in names}
 
 
+#: Groups of the ``by_length_view`` breakdown: some view that labels the car sees its length, or
+#: none does (:mod:`vsrd_mi.evaluate.observability`).
+LENGTH_SEEN, LENGTH_NOT_SEEN = "seen", "not seen"
+LENGTH_VIEW_GROUPS = (LENGTH_SEEN, LENGTH_NOT_SEEN)
+
+
+def length_view_group(record: GroundTruthRecord) -> str | None:
+    """:data:`LENGTH_SEEN` when the record's ``length_view_px`` reaches
+    :data:`~vsrd_mi.evaluate.observability.LENGTH_SEEN_PX`, :data:`LENGTH_NOT_SEEN` below it,
+    None where it was not measured."""
+    shift = record.attributes.length_view_px
+    if shift is None:
+        return None
+    return LENGTH_SEEN if shift >= LENGTH_SEEN_PX else LENGTH_NOT_SEEN
+
+
 @dataclass(frozen=True)
 class BreakdownBins:
     """Bin edges of the distance and occlusion breakdowns (the last bin is open-ended)."""
@@ -301,9 +320,9 @@ class PairStatistics:
                 GROUP_DYNAMIC: summarise(dynamic)}
 
     def breakdowns(self, bins: BreakdownBins = BreakdownBins()) -> dict[str, dict | None]:
-        """:func:`summarise` by vehicle class, distance, occlusion and parking kind.
-
-        A breakdown whose attribute no record has (e.g. no sidecar) is None.
+        """:func:`summarise` by vehicle class, distance, occlusion, parking kind and whether the
+        length is seen (:func:`length_view_group`; and by class over the records whose length is
+        seen). A breakdown whose attribute no record has (e.g. no sidecar) is None.
         """
         distance_labels = bin_labels(bins.distance_m, " m")
         occlusion_labels = bin_labels(bins.occlusion, " %", 100.0)
@@ -314,4 +333,8 @@ class PairStatistics:
             "by_occlusion": breakdown(self.records, lambda r: bin_of(r.attributes.occlusion, bins.occlusion,
                                                                       occlusion_labels), occlusion_labels),
             "by_parking": breakdown(self.records, lambda r: r.attributes.parking),
+            "by_length_view": breakdown(self.records, length_view_group, LENGTH_VIEW_GROUPS),
+            "by_class_length_seen": breakdown(
+                [r for r in self.records if length_view_group(r) == LENGTH_SEEN],
+                lambda r: r.attributes.vehicle_class),
         }

@@ -34,7 +34,7 @@ from __future__ import annotations
 
 import os
 import re
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Iterable, Sequence
 
@@ -50,6 +50,7 @@ from .ap import CURVE_DESCRIPTIONS, CURVE_EXACT, average_precision
 from .attributes import UNKNOWN, CarAttributes, read_attributes
 from .matching import FrameMatchInput, orientation_similarity
 from .metrics import BreakdownBins, PairStatistics
+from .observability import length_view_shift
 
 #: Names of the two overlap metrics, in result order.
 METRIC_BEV, METRIC_3D = "bev", "3d"
@@ -95,6 +96,11 @@ class EvalConfig:
     gt_visible_in_mask: bool = False
     #: Bins of the distance and occlusion breakdowns.
     bins: BreakdownBins = field(default_factory=BreakdownBins)
+    #: Measure for every ground-truth car whether the views that label it see its length
+    #: (:mod:`vsrd_mi.evaluate.observability`; the breakdowns ``by_length_view`` and
+    #: ``by_class_length_seen``). Reads the instance maps the target selection walks for every
+    #: evaluated frame.
+    length_views: bool = False
 
     def __post_init__(self) -> None:
         if self.gt_boxes not in GT_BOXES_DESCRIPTIONS:
@@ -268,7 +274,7 @@ def sequence_frames(pred_dir: str | os.PathLike, gt_root: str | os.PathLike, seq
         unknown = [f for f in selected if f not in known]
         if unknown:
             raise DataError(seq.root, f"frames {unknown[:10]} are not frames of {seq.name}")
-    evaluated = []
+    evaluated, boxes_cache = [], {}
     for f in selected:
         gt, gt_height = ground_truth_and_heights(seq, f, config)
         if f in files:
@@ -276,6 +282,10 @@ def sequence_frames(pred_dir: str | os.PathLike, gt_root: str | os.PathLike, seq
         else:
             pred, score, height = [], np.empty(0), np.empty(0)
         gt_attributes = [attributes.lookup(f, b.instance_id) for b in gt] if attributes else None
+        if config.length_views:
+            shifts = length_view_shift(seq, f, [b.instance_id for b in gt], cache=boxes_cache)
+            gt_attributes = [replace(a, length_view_px=shifts[b.instance_id])
+                             for a, b in zip(gt_attributes or [UNKNOWN] * len(gt), gt)]
         evaluated.append(FrameBoxes(frame=f, gt=gt, gt_height=gt_height, pred=pred, pred_score=score,
                                     pred_height=height, gt_attributes=gt_attributes,
                                     sequence=f"{seq.root}/{seq.name}"))
