@@ -146,6 +146,13 @@ class VehicleConfig:
     bumper_fraction: Range = (0.30, 0.45)
     #: Run of the rounded edge from the bumper's front to the bonnet (and to the deck).
     nose_round: Range = (0.08, 0.18)
+    #: Radius of the lower body's plan corners (seen from above, where the bumpers wrap round to
+    #: the sides). (0, 0), the default, keeps the plan a rectangle, the side profile extruded
+    #: across the width, and draws nothing.
+    plan_corner: Range = (0.0, 0.0)
+    #: Longest edge of the side profile where the plan corners are rounded (its vertices are what
+    #: the rounding moves).
+    plan_segment: float = 0.04
     #: Door mirrors: length along x, height, set-back behind the windscreen base (ranges).
     mirror_length: Range = (0.20, 0.28)
     mirror_height: Range = (0.13, 0.18)
@@ -208,6 +215,16 @@ def extrude_profile(profile: Polygon, y0: float, y1: float) -> tuple[np.ndarray,
         verts += [(a[0], y0, a[1]), (b[0], y0, b[1]), (b[0], y1, b[1]), (a[0], y1, a[1])]
         faces += [[base, base + 1, base + 2], [base, base + 2, base + 3]]
     return np.asarray(verts, dtype=np.float64), np.asarray(faces, dtype=np.int64)
+
+
+def round_plan_corners(verts: np.ndarray, half: float, hw: float, radius: float) -> np.ndarray:
+    """``verts`` (V, 3) of a body spanning ``|x| <= half``, ``|y| <= hw`` with each point's ``|y|``
+    capped at the quarter circle of ``radius`` in the plan's corners (a copy)."""
+    out = np.array(verts, dtype=np.float64)
+    into = np.clip(np.abs(out[:, 0]) - (half - radius), 0.0, radius)
+    limit = hw - radius + np.sqrt(np.maximum(radius * radius - into * into, 0.0))
+    out[:, 1] = np.sign(out[:, 1]) * np.minimum(np.abs(out[:, 1]), limit)
+    return out
 
 
 def _box(lo: tuple[float, float, float], hi: tuple[float, float, float]
@@ -315,7 +332,12 @@ def build_vehicle(rng: np.random.Generator, vclass: VehicleClass | str,
                          f"falls apart at the wheel arches ({body.geom_type})")
 
     parts: list[tuple[np.ndarray, np.ndarray, np.ndarray | int]] = []
-    parts.append((*extrude_profile(body, -hw, hw), BODY))
+    if config.plan_corner[1] > 0:  # no draw otherwise: the default's vehicles stay as they were
+        corner = min(u(config.plan_corner), hw, 0.5 * half)
+        prism = extrude_profile(shapely.segmentize(body, config.plan_segment), -hw, hw)
+        parts.append((round_plan_corners(prism[0], half, hw, corner), prism[1], BODY))
+    else:
+        parts.append((*extrude_profile(body, -hw, hw), BODY))
     cw, rw = config.cabin_width_fraction * hw, u(vclass.roof_width) * hw
     cabin = np.array([(x, s * w, z) for x0, x1, w, z in
                       ((p.backlight_base, p.windscreen_base, cw, p.belt),
@@ -443,4 +465,4 @@ class VehicleDeck:
 
 
 __all__ = ["ALL_MESHES", "VehicleClass", "VehicleDeck", "VehicleConfig", "VEHICLE_CLASSES", "Profile", "build_vehicle",
-           "draw_profile", "extrude_profile", "random_vehicle"]
+           "draw_profile", "extrude_profile", "random_vehicle", "round_plan_corners"]
