@@ -84,9 +84,10 @@ def test_rounded_plan_corners_keep_the_tight_box(vclass):
     rounded = replace(square, plan_corner=(0.3, 0.3))
     for seed in range(3):
         drawn = draw_profile(np.random.default_rng(seed), vclass, square)
-        a = build_vehicle(np.random.default_rng(seed), vclass, square)
-        b = build_vehicle(np.random.default_rng(seed), vclass, rounded)
+        rng_a, rng_b = np.random.default_rng(seed), np.random.default_rng(seed)
+        a, b = build_vehicle(rng_a, vclass, square), build_vehicle(rng_b, vclass, rounded)
         np.testing.assert_allclose(b.size, a.size, atol=1e-9)  # the mirrors still set the width
+        assert rng_a.uniform() == rng_b.uniform()  # one radius draws nothing: the street is the same
         half, hw = 0.5 * drawn.length, 0.5 * drawn.body_width
         # below the mirrors, every point of the body lies inside the plan's rounded rectangle
         body = b.vertices[b.vertices[:, 2] < drawn.belt - 1e-6]

@@ -148,7 +148,8 @@ class VehicleConfig:
     nose_round: Range = (0.08, 0.18)
     #: Radius of the lower body's plan corners (seen from above, where the bumpers wrap round to
     #: the sides). (0, 0), the default, keeps the plan a rectangle, the side profile extruded
-    #: across the width, and draws nothing.
+    #: across the width. A range of equal ends is that radius and draws nothing, so the vehicles
+    #: and the street they stand in are drawn as with square corners.
     plan_corner: Range = (0.0, 0.0)
     #: Longest edge of the side profile where the plan corners are rounded (its vertices are what
     #: the rounding moves).
@@ -332,8 +333,9 @@ def build_vehicle(rng: np.random.Generator, vclass: VehicleClass | str,
                          f"falls apart at the wheel arches ({body.geom_type})")
 
     parts: list[tuple[np.ndarray, np.ndarray, np.ndarray | int]] = []
-    if config.plan_corner[1] > 0:  # no draw otherwise: the default's vehicles stay as they were
-        corner = min(u(config.plan_corner), hw, 0.5 * half)
+    lo, hi = config.plan_corner
+    if hi > 0:
+        corner = min(lo if lo == hi else u(config.plan_corner), hw, 0.5 * half)
         prism = extrude_profile(shapely.segmentize(body, config.plan_segment), -hw, hw)
         parts.append((round_plan_corners(prism[0], half, hw, corner), prism[1], BODY))
     else:
