@@ -820,7 +820,8 @@ def test_missing_sidecar_means_no_attributes(dataset):
 
 
 def test_far_end_shift_sees_a_passing_car_but_not_the_length_of_one_straight_ahead():
-    from vsrd_mi.evaluate.observability import LENGTH_PROBE_M, LENGTH_SEEN_PX, far_end_shift
+    from vsrd_mi.evaluate.metrics import LENGTH_SEEN_PX
+    from vsrd_mi.evaluate.observability import LENGTH_PROBE_M, far_end_shift
     size = (IMG_W, IMG_H)
     # straight ahead, the camera inside the strip its sides span and 0.2 m above its top: only
     # the top edge moves, to the far top corners' new image row
@@ -837,6 +838,12 @@ def test_far_end_shift_sees_a_passing_car_but_not_the_length_of_one_straight_ahe
     expected = FX * x_side * (1.0 / (z_far + LENGTH_PROBE_M) - 1.0 / z_far)
     assert far_end_shift(beside, K, size) == pytest.approx(expected, rel=1e-6)
     assert far_end_shift(beside, K, size) > LENGTH_SEEN_PX
+    # crossing the view, either way round: the far end is the one farther left, which sets x1
+    for yaw in (0.5 * math.pi, -0.5 * math.pi):
+        crossing = Box3D(centre=(-3.0, 1.0, 12.0), size=(1.8, 1.5, 4.2), yaw=yaw)
+        x_far, z_near = -3.0 - 2.1, 12.0 - 0.9
+        expected = FX * (x_far / z_near - (x_far - LENGTH_PROBE_M) / z_near)
+        assert far_end_shift(crossing, K, size) == pytest.approx(expected, rel=1e-6)
     # behind the camera: not in the image
     assert far_end_shift(dataclasses.replace(beside, centre=(-3.0, 1.0, -12.0)), K, size) is None
     with pytest.raises(ValueError, match="probe"):
@@ -855,7 +862,28 @@ def test_length_views_split_the_pairs_by_whether_a_view_sees_the_length(dataset,
     assert list(b["by_length_view"]) == ["seen", "not seen"]
     assert b["by_length_view"]["seen"]["n_gt"] == 3 and b["by_length_view"]["not seen"]["n_gt"] == 3
     assert list(b["by_class_length_seen"]) == ["sedan"]
+    # three frames are too few for the selection's four sources: each frame counted alone
+    assert result["length_views_from_one_frame"] == [0, 1, 2]
     assert evaluate_sequence(pred, dataset, 7)["breakdown"]["by_length_view"] is None
     assert main(["eval", "--pred", str(pred), "--gt", str(dataset), "--sequence", "7", "--length-views"]) == 0
     table = capsys.readouterr().out
     assert "sees its length" in table and "not seen" in table
+
+
+def test_length_view_shift_searches_the_selected_frames(dataset):
+    from vsrd_mi.data.kitti360 import Sequence
+    from vsrd_mi.data.selection import SelectionConfig
+    from vsrd_mi.evaluate.observability import labelling_frames, length_view_shift
+    _write_instance_maps(dataset)
+    seq = Sequence(dataset, 7)
+    assert labelling_frames(seq, 1) is None  # too few sources for the default selection
+    frames = labelling_frames(seq, 1, SelectionConfig(min_sources=2))
+    assert frames == [0, 1, 2]
+    shifts = length_view_shift(seq, frames, [26001, 26003])
+    # the largest shift is the nearest view's: car 1 stands 12 - frame m ahead, 3 m to the left
+    x_side = -3.0 + 0.9
+    expected = max(FX * x_side * (1.0 / (z + 2.1 + 0.5) - 1.0 / (z + 2.1)) for z in (12.0, 11.0, 10.0))
+    assert shifts[26001] == pytest.approx(expected, rel=1e-6)
+    assert shifts[26003] < 1.0  # straight ahead in every frame
+    with pytest.raises(DataError, match="instance map"):
+        labelling_frames(seq, 5)

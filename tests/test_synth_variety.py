@@ -78,7 +78,7 @@ def test_vehicle_sizes_and_tight_box_with_mirrors(vclass):
         assert car.vehicle_class == vclass.name and car.lamps is not None
 
 
-@pytest.mark.parametrize("vclass", [c for c in VEHICLE_CLASSES if not c.bed], ids=lambda c: c.name)
+@pytest.mark.parametrize("vclass", VEHICLE_CLASSES, ids=lambda c: c.name)
 def test_rounded_plan_corners_keep_the_tight_box(vclass):
     square = VehicleConfig()
     rounded = replace(square, plan_corner=(0.3, 0.3))
@@ -89,16 +89,26 @@ def test_rounded_plan_corners_keep_the_tight_box(vclass):
         np.testing.assert_allclose(b.size, a.size, atol=1e-9)  # the mirrors still set the width
         assert rng_a.uniform() == rng_b.uniform()  # one radius draws nothing: the street is the same
         half, hw = 0.5 * drawn.length, 0.5 * drawn.body_width
-        # below the mirrors, every point of the body lies inside the plan's rounded rectangle
-        body = b.vertices[b.vertices[:, 2] < drawn.belt - 1e-6]
+        # every point but the mirrors' (and a pickup bed's walls) lies inside the rounded plan
+        body = b.vertices[np.abs(b.vertices[:, 1]) <= hw + 1e-9]
+        if vclass.bed:
+            body = body[body[:, 0] > drawn.backlight_base + 1e-9]
         into = np.clip(np.abs(body[:, 0]) - (half - 0.3), 0.0, None)
         outside = np.hypot(into, np.clip(np.abs(body[:, 1]) - (hw - 0.3), 0.0, None)) > 0.3 + 1e-9
         assert not np.any(outside & (into > 0))
-        # the square car reaches its plan's corner, the rounded one stays 0.3 (sqrt 2 - 1) off it
+        # the square car reaches its plan's front corners, the rounded one stays 0.3 (sqrt 2 - 1)
+        # off them
         def corner_gap(car):
-            low = car.vertices[car.vertices[:, 2] < drawn.belt - 1e-6]
+            low = car.vertices[(car.vertices[:, 2] < drawn.belt - 1e-6) & (car.vertices[:, 0] > 0)]
             return np.min(np.hypot(half - np.abs(low[:, 0]), hw - np.abs(low[:, 1])))
         assert corner_gap(a) < 0.05 and corner_gap(b) >= 0.3 * (np.sqrt(2.0) - 1.0) - 1e-6
+
+
+@pytest.mark.parametrize("bad", [dict(plan_corner=(0.3, 0.2)), dict(plan_corner=(-0.1, 0.2)),
+                                 dict(plan_segment=0.0)])
+def test_plan_corner_settings_are_checked(bad):
+    with pytest.raises(ValueError, match="plan_"):
+        VehicleConfig(**bad)
 
 
 def top_profile(car, bins: int = 40) -> tuple[np.ndarray, np.ndarray]:

@@ -8,6 +8,8 @@ import sys
 from typing import Callable
 
 from ..errors import DataError
+from .metrics import LENGTH_SEEN_PX
+from .observability import LENGTH_PROBE_M
 from .sequence import GT_BOXES_DESCRIPTIONS, GT_BOXES_MASK, METRIC_3D, METRIC_BEV, EvalConfig, evaluate_sequence
 
 #: Column layout of the AP table: (difficulty, result key) pairs, per precision curve.
@@ -186,10 +188,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--visible-only", action="store_true",
                    help="with --gt-boxes projected: keep only GT cars present in the frame's instance map")
     p.add_argument("--length-views", action="store_true",
-                   help="split the pairs by whether some view that labels the car sees its length: one "
-                        "whose 2D box moves by a pixel when the car's far end moves out 0.5 m (a car "
-                        "straight ahead in the lane shows only its rear); reads the instance maps the "
-                        "target selection walks for every frame, about 0.5 s a frame")
+                   help=f"split the pairs by whether some view that labels the car sees its length: one "
+                        f"whose 2D box moves by {LENGTH_SEEN_PX:g} px when the car's far end moves out "
+                        f"{LENGTH_PROBE_M:g} m (a car straight ahead in the lane shows only its rear); runs "
+                        f"the target selection for every frame, which reads instance maps")
     p.add_argument("--json", action="store_true", help="print the full result as JSON")
     func: Callable[[argparse.Namespace], int] = run
     p.set_defaults(func=func)

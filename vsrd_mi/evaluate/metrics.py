@@ -47,7 +47,6 @@ from scipy.optimize import linear_sum_assignment
 from ..geometry.boxes import Box3D, axis_difference, wrap_angle
 from ..geometry.iou3d import iou_matrices
 from .attributes import UNKNOWN, CarAttributes
-from .observability import LENGTH_SEEN_PX
 
 #: Names of the ground-truth groups in the statistics.
 GROUP_ALL, GROUP_STATIC, GROUP_DYNAMIC = "all", "static", "dynamic"
@@ -274,16 +273,18 @@ def breakdown(records: Sequence[GroundTruthRecord], key: Callable[[GroundTruthRe
     return {n: summarise(groups[n]) for n in names}
 
 
+#: A view sees a car's length when moving its far end out by the probe moves its 2D box by at
+#: least this much (px, :mod:`vsrd_mi.evaluate.observability`): one pixel of a mask.
+LENGTH_SEEN_PX = 1.0
 #: Groups of the ``by_length_view`` breakdown: some view that labels the car sees its length, or
-#: none does (:mod:`vsrd_mi.evaluate.observability`).
+#: none does.
 LENGTH_SEEN, LENGTH_NOT_SEEN = "seen", "not seen"
 LENGTH_VIEW_GROUPS = (LENGTH_SEEN, LENGTH_NOT_SEEN)
 
 
 def length_view_group(record: GroundTruthRecord) -> str | None:
-    """:data:`LENGTH_SEEN` when the record's ``length_view_px`` reaches
-    :data:`~vsrd_mi.evaluate.observability.LENGTH_SEEN_PX`, :data:`LENGTH_NOT_SEEN` below it,
-    None where it was not measured."""
+    """:data:`LENGTH_SEEN` when the record's ``length_view_px`` reaches :data:`LENGTH_SEEN_PX`,
+    :data:`LENGTH_NOT_SEEN` below it, None where it was not measured."""
     shift = record.attributes.length_view_px
     if shift is None:
         return None

@@ -3,17 +3,18 @@
 A mask-box projection loss measures a car's length only through views in which moving the car's
 far end moves its 2D box. A car straight ahead in the ego lane, seen from inside the strip its
 sides span, shows only its rear in every view: its far end lies behind its near face, and no
-view's mask changes with its length (docs/accuracy.md, "Lengths no view sees"). Such a car's
-length is not measured by the masks of any method that fits boxes to them, and its label's
-length is whatever the labeller assumed.
+view's mask changes with its length beyond a fraction of a pixel at the roof line
+(docs/accuracy.md, "What is still short"). Its length is not measured by the masks of any method
+that fits boxes to them, and its label's length is whatever the labeller assumed.
 
-:func:`length_view_shift` measures this from the ground truth: over the frames that label a car,
-the most its 2D box (the projected corners of its true box, clipped to the image) moves when its
-far end, the one farther from that frame's camera, moves out by ``probe`` metres. Occluders are
-not taken into account (a parked car whose far end a neighbour hides has its own breakdown,
-occlusion). The evaluation takes the frames the default target selection picks for the
-evaluated frame (:func:`~vsrd_mi.data.selection.spec_for_frame`), which for a target are the
-frames that labelled it.
+:func:`length_view_shift` measures this from the ground truth: over a set of frames, the most a
+car's 2D box (the projected corners of its true box, clipped to the image) moves when its far
+end, the one farther from that frame's camera, moves out by ``probe`` metres. Occluders are not
+taken into account (a parked car whose far end a neighbour hides has its own breakdown,
+occlusion). :func:`labelling_frames` gives the frames: those the default target selection
+picks around the evaluated frame (:func:`~vsrd_mi.data.selection.spec_for_frame`: its sources
+and its group), which for a target are the views that labelled it and for a group frame the
+views of a target beside it.
 """
 
 from __future__ import annotations
@@ -31,9 +32,6 @@ from ..geometry.camera import box_to_2d
 
 #: How far the far end moves out (m): a tenth of a car's length.
 LENGTH_PROBE_M = 0.5
-#: A view sees a length when the probe moves the car's 2D box by at least this much (px): one
-#: pixel of a mask.
-LENGTH_SEEN_PX = 1.0
 
 
 def far_end_shift(box: Box3D, K: np.ndarray, image_size: tuple[int, int], probe: float = LENGTH_PROBE_M
@@ -44,7 +42,8 @@ def far_end_shift(box: Box3D, K: np.ndarray, image_size: tuple[int, int], probe:
     if probe <= 0:
         raise ValueError(f"far_end_shift: probe must be > 0 m, got {probe}")
     axis = box.rotation[:, 2]
-    sign = 1.0 if float(np.dot(axis, box.centre)) >= 0.0 else -1.0  # the end at +axis is farther
+    # |c + a l/2|^2 - |c - a l/2|^2 = 2 l (c . a): the end at +axis is the farther one when c . a > 0
+    sign = 1.0 if float(np.dot(axis, box.centre)) >= 0.0 else -1.0
     size = np.array(box.size, dtype=np.float64)
     size[2] += probe
     longer = dataclasses.replace(box, centre=np.asarray(box.centre) + sign * 0.5 * probe * axis, size=size)
@@ -54,17 +53,26 @@ def far_end_shift(box: Box3D, K: np.ndarray, image_size: tuple[int, int], probe:
     return float(np.max(np.abs(after - before)))
 
 
-def length_view_shift(seq: Sequence, frame: int, instance_ids: Iterable[int], probe: float = LENGTH_PROBE_M,
-                      selection: SelectionConfig | None = None, cache: dict | None = None) -> dict[int, float]:
-    """Per ground-truth car of ``frame`` (instance-map values ``instance_ids``): the largest
-    :func:`far_end_shift` over ``frame`` and the sources :func:`spec_for_frame` picks for it (0
-    where no frame shows the car). Without a selection (too few sources) only ``frame`` counts.
-    ``cache`` (frame -> ground-truth boxes) may be shared between calls on one sequence."""
-    cache = {} if cache is None else cache
+def labelling_frames(seq: Sequence, frame: int, selection: SelectionConfig | None = None) -> list[int] | None:
+    """``frame``, its sources and its group under the target selection (sorted), or None where
+    the selection has too few sources there (a DataError of another kind, e.g. a missing
+    instance map, is raised)."""
     try:
-        frames = [frame] + [int(f) for f in spec_for_frame(seq, frame, selection).sources]
-    except DataError:
-        frames = [frame]
+        spec = spec_for_frame(seq, frame, selection)
+    except DataError as exc:
+        if "source candidates" in exc.problem:
+            return None
+        raise
+    return sorted({int(frame), *(int(f) for f in spec.sources), *(int(f) for f in spec.group)})
+
+
+def length_view_shift(seq: Sequence, frames: Iterable[int], instance_ids: Iterable[int],
+                      probe: float = LENGTH_PROBE_M,
+                      cache: dict[int, dict[int, Box3D]] | None = None) -> dict[int, float]:
+    """Per car (instance-map values ``instance_ids``), the largest :func:`far_end_shift` of its
+    ground-truth box over ``frames`` (0 where none shows it). ``cache`` (frame -> instance id ->
+    ground-truth box) may be shared between calls on one sequence."""
+    cache = {} if cache is None else cache
     K, size = seq.calibration.K, seq.calibration.image_size
     wanted = set(int(i) for i in instance_ids)
     shifts = dict.fromkeys(wanted, 0.0)
@@ -78,4 +86,4 @@ def length_view_shift(seq: Sequence, frame: int, instance_ids: Iterable[int], pr
     return shifts
 
 
-__all__ = ["LENGTH_PROBE_M", "LENGTH_SEEN_PX", "far_end_shift", "length_view_shift"]
+__all__ = ["LENGTH_PROBE_M", "far_end_shift", "labelling_frames", "length_view_shift"]

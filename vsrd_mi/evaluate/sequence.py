@@ -50,7 +50,7 @@ from .ap import CURVE_DESCRIPTIONS, CURVE_EXACT, average_precision
 from .attributes import UNKNOWN, CarAttributes, read_attributes
 from .matching import FrameMatchInput, orientation_similarity
 from .metrics import BreakdownBins, PairStatistics
-from .observability import length_view_shift
+from .observability import labelling_frames, length_view_shift
 
 #: Names of the two overlap metrics, in result order.
 METRIC_BEV, METRIC_3D = "bev", "3d"
@@ -252,7 +252,9 @@ def sequence_frames(pred_dir: str | os.PathLike, gt_root: str | os.PathLike, seq
                     ) -> tuple[list[FrameBoxes], dict]:
     """The :class:`FrameBoxes` of one sequence's evaluated frames (see :func:`evaluate_sequence`
     for which frames and where predictions are read), and a dict of ``sequence``,
-    ``prediction_dir``, ``frames``, ``frames_without_predictions`` and ``attributes``. Frames of
+    ``prediction_dir``, ``frames``, ``frames_without_predictions``, ``attributes`` and, with
+    ``config.length_views``, ``length_views_from_one_frame`` (frames whose selection had too few
+    sources, so the frame alone was searched for views of the length). Frames of
     several sequences can be pooled in one :func:`evaluate_frames`."""
     config = config or EvalConfig()
     seq = KittiSequence(gt_root, sequence)
@@ -274,7 +276,7 @@ def sequence_frames(pred_dir: str | os.PathLike, gt_root: str | os.PathLike, seq
         unknown = [f for f in selected if f not in known]
         if unknown:
             raise DataError(seq.root, f"frames {unknown[:10]} are not frames of {seq.name}")
-    evaluated, boxes_cache = [], {}
+    evaluated, boxes_cache, single_view = [], {}, []
     for f in selected:
         gt, gt_height = ground_truth_and_heights(seq, f, config)
         if f in files:
@@ -283,7 +285,10 @@ def sequence_frames(pred_dir: str | os.PathLike, gt_root: str | os.PathLike, seq
             pred, score, height = [], np.empty(0), np.empty(0)
         gt_attributes = [attributes.lookup(f, b.instance_id) for b in gt] if attributes else None
         if config.length_views:
-            shifts = length_view_shift(seq, f, [b.instance_id for b in gt], cache=boxes_cache)
+            views = labelling_views(seq, f)
+            if views is None:
+                single_view.append(f)
+            shifts = length_view_shift(seq, views or [f], [b.instance_id for b in gt], cache=boxes_cache)
             gt_attributes = [replace(a, length_view_px=shifts[b.instance_id])
                              for a, b in zip(gt_attributes or [UNKNOWN] * len(gt), gt)]
         evaluated.append(FrameBoxes(frame=f, gt=gt, gt_height=gt_height, pred=pred, pred_score=score,
@@ -292,6 +297,8 @@ def sequence_frames(pred_dir: str | os.PathLike, gt_root: str | os.PathLike, seq
     info = {"sequence": seq.name, "prediction_dir": str(label_dir), "frames": selected,
             "frames_without_predictions": [f for f in selected if f not in files],
             "attributes": str(attributes.path) if attributes else None}
+    if config.length_views:
+        info["length_views_from_one_frame"] = single_view
     return evaluated, info
 
 
@@ -313,6 +320,17 @@ def evaluate_sequence(pred_dir: str | os.PathLike, gt_root: str | os.PathLike, s
     result = evaluate_frames(evaluated, config)
     result.update(info)
     return result
+
+
+def labelling_views(seq: KittiSequence, frame: int) -> list[int] | None:
+    """:func:`~vsrd_mi.evaluate.observability.labelling_frames` of ``frame`` (None: too few
+    sources there, the frame alone counts), a DataError saying that the length views need the
+    selection's instance maps otherwise."""
+    try:
+        return labelling_frames(seq, frame)
+    except DataError as exc:
+        raise DataError(exc.path, f"{exc.problem} (--length-views runs the target selection, which "
+                                  f"needs the instance maps)") from None
 
 
 def ground_truth_and_heights(seq: KittiSequence, frame: int, config: EvalConfig) -> tuple[list[Box3D], np.ndarray]:

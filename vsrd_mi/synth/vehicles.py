@@ -146,10 +146,11 @@ class VehicleConfig:
     bumper_fraction: Range = (0.30, 0.45)
     #: Run of the rounded edge from the bumper's front to the bonnet (and to the deck).
     nose_round: Range = (0.08, 0.18)
-    #: Radius of the lower body's plan corners (seen from above, where the bumpers wrap round to
-    #: the sides). (0, 0), the default, keeps the plan a rectangle, the side profile extruded
-    #: across the width. A range of equal ends is that radius and draws nothing, so the vehicles
-    #: and the street they stand in are drawn as with square corners.
+    #: Radius of the body's plan corners (seen from above, where the bumpers wrap round to the
+    #: sides; the lower body and the cabin, not a pickup's bed walls). (0, 0), the default, keeps
+    #: the plan a rectangle, the side profile extruded across the width. A range of equal ends
+    #: is that radius and draws nothing, so the vehicles and the street they stand in are drawn
+    #: as with square corners.
     plan_corner: Range = (0.0, 0.0)
     #: Longest edge of the side profile where the plan corners are rounded (its vertices are what
     #: the rounding moves).
@@ -178,6 +179,13 @@ class VehicleConfig:
     plate_rear_lift: float = 0.30
     #: Plate height (a European plate is 520 mm x 110 mm).
     plate_height: float = 0.11
+
+    def __post_init__(self) -> None:
+        lo, hi = self.plan_corner
+        if not 0.0 <= lo <= hi:
+            raise ValueError(f"VehicleConfig.plan_corner must be a range 0 <= lo <= hi (m), got {self.plan_corner}")
+        if self.plan_segment <= 0:
+            raise ValueError(f"VehicleConfig.plan_segment must be > 0 m, got {self.plan_segment}")
 
     @property
     def class_names(self) -> tuple[str, ...]:
@@ -334,8 +342,9 @@ def build_vehicle(rng: np.random.Generator, vclass: VehicleClass | str,
 
     parts: list[tuple[np.ndarray, np.ndarray, np.ndarray | int]] = []
     lo, hi = config.plan_corner
+    corner = 0.0
     if hi > 0:
-        corner = min(lo if lo == hi else u(config.plan_corner), hw, 0.5 * half)
+        corner = min(lo if lo == hi else u(config.plan_corner), hw, PLAN_CORNER_MAX_SHARE * half)
         prism = extrude_profile(shapely.segmentize(body, config.plan_segment), -hw, hw)
         parts.append((round_plan_corners(prism[0], half, hw, corner), prism[1], BODY))
     else:
@@ -345,6 +354,8 @@ def build_vehicle(rng: np.random.Generator, vclass: VehicleClass | str,
                       ((p.backlight_base, p.windscreen_base, cw, p.belt),
                        (p.roof_rear, p.roof_front, rw, p.height))
                       for x in (x0, x1) for s in (-1.0, 1.0)])
+    if corner > 0:  # a cabin reaching into the rounded corners (a van's) stays inside them
+        cabin = round_plan_corners(cabin, half, hw, corner)
     cv, cf, cn = _hull(cabin)
     parts.append((cv, cf, np.where(cn[:, 2] > ROOF_MIN_NORMAL_Z, BODY, GLASS)))
     if vclass.bed:
@@ -379,6 +390,10 @@ def build_vehicle(rng: np.random.Generator, vclass: VehicleClass | str,
     return CarModel(f"vehicle-{vclass.name}", np.concatenate(verts), np.concatenate(faces),
                     np.concatenate(mats), vclass.name, lamps)
 
+
+#: The plan corners' radius is at most this share of the half length (and at most the half
+#: width): the rounding stays in the end quarters of the car.
+PLAN_CORNER_MAX_SHARE = 0.5
 
 #: Greenhouse faces whose normal points up more steeply than this are roof (painted), not glass.
 ROOF_MIN_NORMAL_Z = 0.9
