@@ -350,3 +350,28 @@ def test_closer_views_weigh_more_in_the_fused_box():
     for n in (3, 4):
         vals = np.random.default_rng(n).normal(size=(n, 3))
         np.testing.assert_allclose(weighted_median(vals, np.ones(n)), np.median(vals, axis=0))
+
+
+def test_consensus_keeps_the_batch_manifest_true_to_the_labels_it_rewrites(scene, tmp_path):
+    """The consensus rewrites label files the targets wrote; the manifest records them anew, so
+    that rerunning the batch on the same output skips every finished target."""
+    from vsrd_mi.batch.manifest import Manifest, default_output_checks
+    from vsrd_mi.batch.tasks import TargetResult, TargetTask
+
+    seq, specs = scene
+    write_results(seq, specs, tmp_path)
+    seq_dir, checks = tmp_path / seq.name, default_output_checks()
+    tasks = [TargetTask(root=str(ROOT), sequence=seq.name, frame=s.target, output_dir=str(tmp_path),
+                        config={}, seed=0) for s in specs]
+    with Manifest(seq_dir, seq.name) as manifest:
+        for task, spec in zip(tasks, specs):
+            outputs = (f"boxes/{spec.target:010d}.json",
+                       *(f"labels/{f:010d}.txt" for f in sorted({spec.target, *spec.group})))
+            manifest.record(task, TargetResult(status="done", outputs=outputs), checks)
+    report = apply_consensus(seq_dir, seq, ConsensusConfig(near_range=1e3))
+    assert report["labels_rewritten"]
+    with Manifest(seq_dir, seq.name) as manifest:
+        assert all(manifest.is_finished(t, checks) for t in tasks)
+        # a file changed by anything else still makes its target run again
+        (seq_dir / report["labels_rewritten"][0]).write_text("Car 0 0 0 0 0 0 0 1 1 1 0 0 0 0\n")
+        assert not all(manifest.is_finished(t, checks) for t in tasks)

@@ -53,6 +53,7 @@ from typing import Callable, NamedTuple
 import numpy as np
 
 from ..batch.atomic import atomic_write_json
+from ..batch.manifest import MANIFEST_NAME, Manifest
 from ..data.kitti360 import Sequence
 from ..data.kitti_labels import KittiLabel, label_from_box, write_labels
 from ..data.masks import car_values, tight_box
@@ -298,7 +299,9 @@ def mask_confidence(box: Box3D, seq: Sequence, frames: list[int], reference: np.
 def apply_consensus(seq_dir: str | Path, seq: Sequence, cfg: ConsensusConfig,
                     heading: HeadingConfig = HeadingConfig()) -> dict:
     """Fuse the parked cars of every finished target under ``seq_dir`` and rewrite the labels of
-    the groups they appear in (atomically); write ``seq_dir/consensus.json``. Returns its content.
+    the groups they appear in (atomically); write ``seq_dir/consensus.json``, and record the
+    rewritten files in the batch manifest where there is one (so that a rerun of the batch still
+    finds the targets finished). Returns the consensus report.
 
     With ``cfg.enabled`` false, groups an earlier consensus rewrote get their targets' own
     boxes back. Damaged target results are reported (``skipped``) and left out, never fatal.
@@ -352,6 +355,10 @@ def apply_consensus(seq_dir: str | Path, seq: Sequence, cfg: ConsensusConfig,
             report["labels_rewritten"].append(rel)
     report["fused"] = [c.to_dict() for c in fused]
     atomic_write_json(seq_dir / "consensus.json", report)
+    if report["labels_rewritten"] and (seq_dir / MANIFEST_NAME).is_file():
+        # the batch's record of these files must follow them, or a rerun redoes every target
+        with Manifest(seq_dir, seq.name) as manifest:
+            manifest.refresh_outputs(report["labels_rewritten"])
     return report
 
 

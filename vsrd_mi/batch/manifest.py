@@ -26,7 +26,7 @@ import hashlib
 import json
 import os
 from collections import Counter
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from datetime import datetime, timezone
 from pathlib import Path, PurePosixPath
 from typing import Any
@@ -236,6 +236,22 @@ class Manifest:
             return False
         return all(output_problem(self.sequence_dir, out["path"], checks, expected=out) is None
                    for out in entry["outputs"])
+
+    def refresh_outputs(self, relpaths: Iterable[str]) -> list[str]:
+        """Record the current size and SHA-256 of finished targets' outputs that a later step
+        rewrote on purpose (the consensus's label files), so that a rerun still finds those
+        targets finished; saves when anything changed. Returns the paths updated."""
+        wanted = {PurePosixPath(Path(p)).as_posix() for p in relpaths}
+        updated = []
+        for entry in self.targets.values():
+            for out in entry.get("outputs", []):
+                path = self.sequence_dir / out["path"]
+                if out["path"] in wanted and path.is_file():
+                    out.update({"bytes": path.stat().st_size, "sha256": file_sha256(path)})
+                    updated.append(out["path"])
+        if updated:
+            self.save()
+        return updated
 
     def mark_running(self, task: TargetTask, when: float) -> None:
         """Record that ``task`` was handed to the executor at POSIX time ``when``; save."""
