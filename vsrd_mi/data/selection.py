@@ -204,12 +204,17 @@ def select_targets(seq: Sequence, cfg: SelectionConfig | None = None,
     return select_from_ids(frame_id_sets(seq, cfg), cfg, frames)
 
 
+class TooFewSourcesError(DataError):
+    """A frame the selection cannot make a target of: fewer source candidates than
+    ``SelectionConfig.min_sources`` (the frame and its masks are fine otherwise)."""
+
+
 def spec_for_frame(seq: Sequence, frame: int, cfg: SelectionConfig | None = None) -> TargetSpec:
     """The :class:`TargetSpec` with ``frame`` itself as target (whether or not it is a group middle).
 
     Reads only the instance maps the walks reach. Its group is the run of consecutive qualifying
     frames with its id set, as in :func:`select_targets`. Raises DataError when the frame has no
-    usable instance map, no target instance or too few sources.
+    usable instance map, no target instance or (:class:`TooFewSourcesError`) too few sources.
     """
     cfg = cfg or SelectionConfig()
     frames = seq.mask_frames
@@ -222,8 +227,8 @@ def spec_for_frame(seq: Sequence, frame: int, cfg: SelectionConfig | None = None
     cands = candidate_sources(frame, frames, ids, cfg)
     picked = pick_sources(frame, cands, cfg)
     if picked is None:
-        raise DataError(seq.instance_path(frame), f"frame {frame} has only {len(cands)} source "
-                                                  f"candidates (need {cfg.min_sources})")
+        raise TooFewSourcesError(seq.instance_path(frame), f"frame {frame} has only {len(cands)} source "
+                                                           f"candidates (need {cfg.min_sources})")
 
     def same_group(f: int) -> bool:
         return ids(f) == target_ids and pick_sources(f, candidate_sources(f, frames, ids, cfg), cfg) is not None

@@ -25,8 +25,7 @@ from typing import Iterable
 import numpy as np
 
 from ..data.kitti360 import Sequence
-from ..data.selection import SelectionConfig, spec_for_frame
-from ..errors import DataError
+from ..data.selection import SelectionConfig, TooFewSourcesError, spec_for_frame
 from ..geometry.boxes import Box3D
 from ..geometry.camera import box_to_2d
 
@@ -59,10 +58,8 @@ def labelling_frames(seq: Sequence, frame: int, selection: SelectionConfig | Non
     instance map, is raised)."""
     try:
         spec = spec_for_frame(seq, frame, selection)
-    except DataError as exc:
-        if "source candidates" in exc.problem:
-            return None
-        raise
+    except TooFewSourcesError:
+        return None
     return sorted({int(frame), *(int(f) for f in spec.sources), *(int(f) for f in spec.group)})
 
 
