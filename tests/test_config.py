@@ -117,8 +117,17 @@ def test_bad_overrides_name_the_key(item, message):
         default_config().with_overrides([item])
 
 
-def test_init_anchor_takes_its_two_choices_and_refuses_others_naming_it():
-    assert default_config().weights.init_anchor == "seen_faces"
-    assert default_config().with_overrides(["weights.init_anchor=centre"]).weights.init_anchor == "centre"
-    with pytest.raises(ValueError, match="weights.init_anchor must be one of"):
-        default_config().with_overrides(["weights.init_anchor=corner"])
+@pytest.mark.parametrize("name", ["init_anchor", "init_anchor_dynamic"])
+def test_init_anchor_takes_its_two_choices_and_refuses_others_naming_it(name):
+    assert getattr(default_config().weights, name) == "seen_faces"
+    assert getattr(default_config().with_overrides([f"weights.{name}=centre"]).weights, name) == "centre"
+    with pytest.raises(ValueError, match=f"weights.{name} must be one of"):
+        default_config().with_overrides([f"weights.{name}=corner"])
+
+
+@pytest.mark.parametrize("item, message", [("weights.length_prior=-1", "weights.length_prior must be >= 0"),
+                                           ("weights.width_prior=-0.5", "weights.width_prior must be >= 0"),
+                                           ("weights.length_prior_px=0", "weights.length_prior_px must be > 0")])
+def test_size_prior_settings_are_checked_naming_them(item, message):
+    with pytest.raises(ValueError, match=message):
+        default_config().with_overrides([item])

@@ -850,6 +850,24 @@ def test_far_end_shift_sees_a_passing_car_but_not_the_length_of_one_straight_ahe
         far_end_shift(beside, K, size, probe=0.0)
 
 
+def test_far_end_shift_through_a_camera_pose_at_a_time_offset():
+    """A moving box in a world frame, seen by a camera 5 m along z and turned by 0.3 rad, 4 frames
+    later: the same shift as that box moved by 4 velocities and expressed in the camera frame
+    (where the far end is the one farther from that camera, not from the world origin)."""
+    from vsrd_mi.geometry.camera import far_end_shift
+    size = (IMG_W, IMG_H)
+    c, s = math.cos(0.3), math.sin(0.3)
+    cam_to_world = np.array([[c, 0.0, s, 1.0], [0.0, 1.0, 0.0, 0.0], [-s, 0.0, c, 5.0], [0.0, 0.0, 0.0, 1.0]])
+    world_to_cam = np.linalg.inv(cam_to_world)
+    box = Box3D(centre=(2.0, 1.0, 14.0), size=(1.8, 1.5, 4.2), yaw=0.4, velocity=np.array([0.1, 0.0, -0.6]),
+                dynamic=True)
+    in_camera = box.at_offset(4.0).transformed(world_to_cam)
+    expected = far_end_shift(in_camera, K, size)
+    assert expected is not None and expected > 1.0
+    assert far_end_shift(box, K, size, world_to_cam=world_to_cam, dt=4.0) == pytest.approx(expected, rel=1e-6)
+    assert far_end_shift(box, K, size, world_to_cam=world_to_cam) != pytest.approx(expected, rel=1e-3)
+
+
 def test_length_views_split_the_pairs_by_whether_a_view_sees_the_length(dataset, tmp_path, capsys):
     pred = tmp_path / "pred"
     for f in (0, 1, 2):

@@ -23,10 +23,11 @@ from vsrd_plugins.sdf import InstanceField, ResidualField
 from vsrd_plugins.silhouette import VSRDSilhouetteIntegrator
 
 from vsrd_mi.data.kitti_labels import label_from_box, write_labels
+from vsrd_mi.data.observations import length_view_px
 from vsrd_mi.geometry import boxes2d
 from vsrd_mi.geometry.boxes import Box3D
 from vsrd_mi.geometry.surface import range_quantile
-from vsrd_mi.geometry.vehicle_sizes import tight_width
+from vsrd_mi.geometry.vehicle_sizes import tight_width, typical_length
 from vsrd_mi.optimise import losses
 from vsrd_mi.optimise.config import CarProfile, default_config
 from vsrd_mi.optimise.losses import to_float
@@ -713,6 +714,23 @@ def test_width_prior_moves_the_width_only():
     assert np.all(ad[:, 1:] == 0.0) and np.all(np.abs(fd[:, 1:]) > 1e-3)
 
 
+def test_length_prior_is_the_length_l1_from_the_catalogue_plane_and_moves_the_length_only():
+    """Its value by hand; AD matches central differences along the length, and the width and
+    height, which end-on views measure, get no gradient from it (detached)."""
+    sizes = np.array([[1.9, 1.5, 4.3], [2.2, 2.0, 4.4]])
+    field = field_of(np.array([[0.5, 0.2, 10.0], [-3.0, 0.4, 16.0]]), sizes, np.array([0.3, -1.0]))
+    b = field.boxes()
+    expected = typical_length(b["size"][:, 0], b["size"][:, 1])
+    prior = losses.LengthPrior(np.array([2.0, 5.0]))
+    by_hand = (2.0 * abs(b["size"][0, 2] - expected[0]) + 5.0 * abs(b["size"][1, 2] - expected[1])) / 2
+    assert values(prior.loss(field.decode()))[0] == pytest.approx(by_hand, rel=1e-5)
+    ad, fd = ad_and_central_differences(field, ("size",), prior.loss, {"size": 1e-3})
+    ad, fd = ad["size"].reshape(-1, 3), fd["size"].reshape(-1, 3)
+    np.testing.assert_allclose(ad[:, 2], fd[:, 2], rtol=1e-2)
+    assert np.all(np.abs(ad[:, 2]) > 0.1)
+    assert np.all(ad[:, :2] == 0.0) and np.all(np.abs(fd[:, :2]) > 1e-3)
+
+
 def surface_cloud(centre, size, yaw, camera, count, rng, offset=0.0):
     """Points on the faces of a box that ``camera`` sees (its visible surface), pushed
     ``offset`` metres along their rays (positive: behind the surface), and their cameras."""
@@ -1120,9 +1138,34 @@ def test_shape_prior_enters_the_init_term_with_the_initial_boxes(scene):
         cfg = quick(residual=False, steps=1)
         cfg = cfg.replace(weights=dataclasses.replace(cfg.weights, init_size=w, init_yaw=w, init_size_dynamic=w_dyn,
                                                       init_yaw_dynamic=w_dyn, width_prior=0.0,
-                                                      init_anchor="centre"))
+                                                      init_anchor="centre", init_anchor_dynamic="centre",
+                                                      length_prior=0.0))
         result = BoxOptimiser(obs, gt, cfg, init_boxes=init).run()
         assert result.loss_history["init"][0] == pytest.approx(expected, abs=2e-3), (w, w_dyn)
+
+
+def test_moving_cars_seen_end_on_take_the_length_prior_instead_of_the_width_prior(scene):
+    """The bundled scene has a moving car straight ahead (its far end moves its 2D box by under a
+    pixel in every view) and an oncoming one whose length the views see. Started at the ground
+    truth, the init term at step 0 (anchor and shape prior off) is the length prior's distance
+    for the car ahead and the width prior's for every other box; with the length prior off, the
+    width prior's for all."""
+    obs, gt = scene
+    frames = np.flatnonzero(obs.is_source | (np.arange(obs.num_frames) == 0))
+    seen_px = np.array([length_view_px(b, obs, frames) for b in gt])
+    moving = np.array([b.dynamic for b in gt])
+    end_on = moving & (seen_px < 1.0)
+    assert end_on.sum() == 1 and (moving & ~end_on).sum() >= 1 and seen_px[moving & ~end_on].min() > 10.0
+    size = np.stack([b.size for b in gt])
+    width_gap = np.abs(size[:, 0] - tight_width(size[:, 2], size[:, 1]))
+    length_gap = np.abs(size[:, 2] - typical_length(size[:, 0], size[:, 1]))
+    for w_len, expected in ((4.0, np.where(end_on, 4.0 * length_gap, 3.0 * width_gap).mean()),
+                            (0.0, 3.0 * width_gap.mean())):
+        cfg = quick(residual=False, steps=1)
+        cfg = cfg.replace(weights=dataclasses.replace(cfg.weights, init=0.0, init_dynamic=0.0, init_yaw=0.0,
+                                                      init_yaw_dynamic=0.0, width_prior=3.0, length_prior=w_len))
+        result = BoxOptimiser(obs, gt, cfg, init_boxes=gt).run()
+        assert result.loss_history["init"][0] == pytest.approx(expected, rel=1e-4), w_len
 
 
 def test_visible_surface_enters_the_init_term_with_its_weight_per_motion(scene):
@@ -1154,7 +1197,7 @@ def test_visible_surface_enters_the_init_term_with_its_weight_per_motion(scene):
                                    (5.0, 3.0, clouds, parked_only + moving_only), (0.0, 0.0, clouds, 0.0),
                                    (5.0, 3.0, None, 0.0)):
         cfg = base.replace(weights=dataclasses.replace(base.weights, init=0.0, init_dynamic=0.0, init_yaw=0.0,
-                                                       init_yaw_dynamic=0.0, width_prior=0.0, surface=w,
+                                                       init_yaw_dynamic=0.0, width_prior=0.0, length_prior=0.0, surface=w,
                                                        surface_dynamic=w_dyn))
         result = BoxOptimiser(obs, gt, cfg, init_boxes=gt, surface_points=points).run()
         assert result.loss_history["init"][0] == pytest.approx(want, rel=1e-3, abs=1e-6), (w, w_dyn, points is None)

@@ -11,7 +11,8 @@ that fits boxes to them, and its label's length is whatever the labeller assumed
 car's 2D box (the projected corners of its true box, clipped to the image) moves when its far
 end, the one farther from that frame's camera, moves out by ``probe`` metres. Occluders are not
 taken into account (a parked car whose far end a neighbour hides has its own breakdown,
-occlusion). :func:`labelling_frames` gives the frames: those the default target selection
+occlusion). :func:`~vsrd_mi.geometry.camera.far_end_shift` measures one view (the optimisation
+uses it on its initial boxes to find the lengths no view measures). :func:`labelling_frames` gives the frames: those the default target selection
 picks around the evaluated frame (:func:`~vsrd_mi.data.selection.spec_for_frame`: its sources
 and its group), which for a target are the views that labelled it and for a group frame the
 views of a target beside it.
@@ -19,37 +20,12 @@ views of a target beside it.
 
 from __future__ import annotations
 
-import dataclasses
 from typing import Iterable
-
-import numpy as np
 
 from ..data.kitti360 import Sequence
 from ..data.selection import SelectionConfig, TooFewSourcesError, spec_for_frame
 from ..geometry.boxes import Box3D
-from ..geometry.camera import box_to_2d
-
-#: How far the far end moves out (m): a tenth of a car's length.
-LENGTH_PROBE_M = 0.5
-
-
-def far_end_shift(box: Box3D, K: np.ndarray, image_size: tuple[int, int], probe: float = LENGTH_PROBE_M
-                  ) -> float | None:
-    """How far (px, the largest of the four sides) ``box``'s 2D box (camera frame, clipped to the
-    image) moves when its end farther from the camera moves out by ``probe`` metres; None when
-    the box is not in the image."""
-    if probe <= 0:
-        raise ValueError(f"far_end_shift: probe must be > 0 m, got {probe}")
-    axis = box.rotation[:, 2]
-    # |c + a l/2|^2 - |c - a l/2|^2 = 2 l (c . a): the end at +axis is the farther one when c . a > 0
-    sign = 1.0 if float(np.dot(axis, box.centre)) >= 0.0 else -1.0
-    size = np.array(box.size, dtype=np.float64)
-    size[2] += probe
-    longer = dataclasses.replace(box, centre=np.asarray(box.centre) + sign * 0.5 * probe * axis, size=size)
-    before, after = box_to_2d(box, K, image_size=image_size), box_to_2d(longer, K, image_size=image_size)
-    if before is None or after is None:
-        return None
-    return float(np.max(np.abs(after - before)))
+from ..geometry.camera import LENGTH_PROBE_M, far_end_shift
 
 
 def labelling_frames(seq: Sequence, frame: int, selection: SelectionConfig | None = None) -> list[int] | None:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
 from .boxes import BOX_EDGES, Box3D
@@ -110,3 +112,31 @@ def box_to_2d(box: Box3D, K: np.ndarray, world_to_cam: np.ndarray | None = None,
     if not valid:
         return None
     return np.array([x1, y1, x2, y2], dtype=np.float64)
+
+
+#: How far the far end moves out (m): a tenth of a car's length.
+LENGTH_PROBE_M = 0.5
+
+
+def far_end_shift(box: Box3D, K: np.ndarray, image_size: tuple[int, int], probe: float = LENGTH_PROBE_M,
+                  world_to_cam: np.ndarray | None = None, dt: float = 0.0) -> float | None:
+    """How far (px, the largest of the four sides) ``box``'s 2D box (clipped to the image) moves
+    when its end farther from the camera moves out by ``probe`` metres; None when the box is not
+    in the image. ``world_to_cam`` and ``dt`` as in :func:`box_to_2d` (default: the box is in the
+    camera frame, at its time)."""
+    if probe <= 0:
+        raise ValueError(f"far_end_shift: probe must be > 0 m, got {probe}")
+    box = box.at_offset(dt)
+    camera = np.zeros(3) if world_to_cam is None else np.linalg.inv(world_to_cam)[:3, 3]
+    axis = box.rotation[:, 2]
+    # |d + a l/2|^2 - |d - a l/2|^2 = 2 l (d . a), d the centre seen from the camera: the end at
+    # +axis is the farther one when d . a > 0
+    sign = 1.0 if float(np.dot(axis, np.asarray(box.centre) - camera)) >= 0.0 else -1.0
+    size = np.array(box.size, dtype=np.float64)
+    size[2] += probe
+    longer = dataclasses.replace(box, centre=np.asarray(box.centre) + sign * 0.5 * probe * axis, size=size)
+    before = box_to_2d(box, K, world_to_cam=world_to_cam, image_size=image_size)
+    after = box_to_2d(longer, K, world_to_cam=world_to_cam, image_size=image_size)
+    if before is None or after is None:
+        return None
+    return float(np.max(np.abs(after - before)))

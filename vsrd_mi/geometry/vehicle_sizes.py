@@ -88,6 +88,25 @@ def tight_width(length, height):
 
 
 @lru_cache(maxsize=1)
+def length_coefficients() -> tuple[float, float, float]:
+    """``(a, b, c)`` of the least-squares plane ``length = a + b * width_mirrors + c * height``
+    through :data:`CATALOGUE`."""
+    design = np.array([[1.0, v.width_mirrors, v.height] for v in CATALOGUE])
+    target = np.array([v.length for v in CATALOGUE])
+    coef, *_ = np.linalg.lstsq(design, target, rcond=None)
+    return float(coef[0]), float(coef[1]), float(coef[2])
+
+
+def typical_length(width, height):
+    """Expected length (m) of a vehicle of the given tight width (mirrors included) and height (m).
+
+    Works on floats, NumPy arrays and Dr.Jit arrays alike (a plane in ``width`` and ``height``).
+    """
+    a, b, c = length_coefficients()
+    return a + b * width + c * height
+
+
+@lru_cache(maxsize=1)
 def length_given_height() -> tuple[float, float, float]:
     """``(a, b, sd)``: the least-squares line ``length = a + b * height`` through
     :data:`CATALOGUE` and the standard deviation of its residuals (m). Taller vehicles are longer
@@ -114,5 +133,5 @@ def fit_residuals() -> np.ndarray:
     return np.array([v.width_mirrors - tight_width(v.length, v.height) for v in CATALOGUE])
 
 
-__all__ = ["CATALOGUE", "VehicleDimensions", "fit_residuals", "length_given_height", "mirror_span", "tight_width",
-           "width_coefficients"]
+__all__ = ["CATALOGUE", "VehicleDimensions", "fit_residuals", "length_coefficients", "length_given_height",
+           "mirror_span", "tight_width", "typical_length", "width_coefficients"]

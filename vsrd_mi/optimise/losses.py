@@ -18,7 +18,7 @@ from ..geometry import boxes2d
 from ..geometry.boxes import CORNER_SIGNS, Box3D
 from ..geometry.camera import NEAR_PLANE, footprint
 from ..geometry.surface import footprint_ray_residuals, quantile_soft_l1, range_quantile
-from ..geometry.vehicle_sizes import tight_width
+from ..geometry.vehicle_sizes import tight_width, typical_length
 from ..geometry.xp import drjit_namespace
 from .config import MAX_PART_FRACTION, CarProfile
 
@@ -408,6 +408,22 @@ class WidthPrior:
         """``sum_n w_n |width_n - tight_width(length_n, height_n)| / N`` (metres)."""
         expected = tight_width(2.0 * dr.detach(dec.half[2]), 2.0 * dr.detach(dec.half[1]))
         return dr.sum(self.w * dr.abs(2.0 * dec.half[0] - expected)) / max(self.count, 1)
+
+
+class LengthPrior(WidthPrior):
+    """Length of each box drawn towards the length real vehicles of its width and height have
+    (:func:`vsrd_mi.geometry.vehicle_sizes.typical_length`), with per-box weights ``weights`` (N,).
+
+    For the boxes whose length no view measures (a car seen end-on in every view), whose width
+    and height the masks do measure; the width and height enter detached, so the prior moves the
+    length only. A box under this prior takes no :class:`WidthPrior` (the two planes together
+    would move its width and length round each other).
+    """
+
+    def loss(self, dec: DecodedBoxes) -> mi.Float:
+        """``sum_n w_n |length_n - typical_length(width_n, height_n)| / N`` (metres)."""
+        expected = typical_length(2.0 * dr.detach(dec.half[0]), 2.0 * dr.detach(dec.half[1]))
+        return dr.sum(self.w * dr.abs(2.0 * dec.half[2] - expected)) / max(self.count, 1)
 
 
 class VisibleSurface:

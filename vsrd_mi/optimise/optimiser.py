@@ -36,7 +36,7 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 from vsrd_plugins.sdf import InstanceField
 
-from ..data.observations import Observations
+from ..data.observations import Observations, length_view_px
 from ..geometry import boxes2d
 from ..geometry.boxes import Box3D
 from ..geometry.camera import image_bounds
@@ -400,9 +400,10 @@ class BoxOptimiser:
             sizes, yaws = np.stack([b.size for b in self.init_boxes]), np.array([b.yaw for b in self.init_boxes])
             if np.any(init_weights > 0):
                 normals = None
-                if w.init_anchor == "seen_faces":  # parked boxes only; moving ones keep the centre
+                faces = np.where(self.dynamic, w.init_anchor_dynamic == "seen_faces", w.init_anchor == "seen_faces")
+                if faces.any():  # zero normals keep a box's centre anchor
                     normals = losses.seen_face_normals(self.init_boxes)
-                    normals[self.dynamic] = 0.0
+                    normals[~faces] = 0.0
                 anchor = losses.InitAnchor(np.stack([b.centre for b in self.init_boxes]),
                                            np.stack([b.velocity for b in self.init_boxes])
                                            if velocity else None, self.dynamic, init_weights,
@@ -413,9 +414,24 @@ class BoxOptimiser:
                                       np.where(self.dynamic, w.init_yaw_dynamic, w.init_yaw))
             if not prior.active:
                 prior = None
-        width_prior = losses.WidthPrior(np.full(self.n, w.width_prior)) if w.width_prior > 0 else None
+        end_on = self._lengths_unmeasured()
+        width_prior = losses.WidthPrior(np.where(end_on, 0.0, w.width_prior)) if w.width_prior > 0 else None
+        length_prior = losses.LengthPrior(np.where(end_on, w.length_prior, 0.0)) if end_on.any() else None
         surface = self._visible_surface()
-        return [t for t in (anchor, prior, width_prior, surface) if t is not None]
+        return [t for t in (anchor, prior, width_prior, length_prior, surface) if t is not None]
+
+    def _lengths_unmeasured(self) -> np.ndarray:
+        """(N,) the moving boxes whose length the length prior holds: in no view of the target or
+        its sources does their initial box's 2D box move by ``weights.length_prior_px`` when its
+        far end moves out (:func:`~vsrd_mi.data.observations.length_view_px`); none without
+        initial boxes or with the prior off."""
+        w = self.cfg.weights
+        unmeasured = np.zeros(self.n, dtype=bool)
+        if w.length_prior <= 0 or self.init_boxes is None:
+            return unmeasured
+        for i in np.flatnonzero(self.dynamic):
+            unmeasured[i] = length_view_px(self.init_boxes[i], self.obs, self.frames) < w.length_prior_px
+        return unmeasured
 
     def _update_lanes(self, perm: np.ndarray) -> None:
         """The projection lanes of the matching ``perm`` (rebuilt only when it changed)."""
