@@ -32,3 +32,5 @@ def test_two_runs_of_a_target_write_identical_labels(tmp_path):
     # option, off by default) from the prior where no view measured it
     assert all(isinstance(b["length_held_from_inside"], bool) and b["length_unmeasured"] is False
                for b in boxes[0]["boxes"])
+    # and whether the length prior held it: the moving car ahead in the lane, seen end-on
+    assert [b["instance_id"] for b in boxes[0]["boxes"] if b["length_from_prior"]] == [26002]

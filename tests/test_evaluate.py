@@ -821,7 +821,7 @@ def test_missing_sidecar_means_no_attributes(dataset):
 
 def test_far_end_shift_sees_a_passing_car_but_not_the_length_of_one_straight_ahead():
     from vsrd_mi.evaluate.metrics import LENGTH_SEEN_PX
-    from vsrd_mi.evaluate.observability import LENGTH_PROBE_M, far_end_shift
+    from vsrd_mi.geometry.camera import LENGTH_PROBE_M, far_end_shift
     size = (IMG_W, IMG_H)
     # straight ahead, the camera inside the strip its sides span and 0.2 m above its top: only
     # the top edge moves, to the far top corners' new image row
@@ -866,6 +866,16 @@ def test_far_end_shift_through_a_camera_pose_at_a_time_offset():
     assert expected is not None and expected > 1.0
     assert far_end_shift(box, K, size, world_to_cam=world_to_cam, dt=4.0) == pytest.approx(expected, rel=1e-6)
     assert far_end_shift(box, K, size, world_to_cam=world_to_cam) != pytest.approx(expected, rel=1e-3)
+    # a camera beyond the box, looking back: the end farther from it is the one nearer the origin
+    back = np.array([[-1.0, 0.0, 0.0, 0.5], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, -1.0, 30.0], [0.0, 0.0, 0.0, 1.0]])
+    parked = Box3D(centre=(0.0, 1.0, 14.0), size=(1.8, 1.5, 4.2), yaw=0.0)
+    seen_back = far_end_shift(parked, K, size, world_to_cam=np.linalg.inv(back))
+    assert seen_back == pytest.approx(far_end_shift(parked.transformed(np.linalg.inv(back)), K, size), rel=1e-6)
+    origin_end = dataclasses.replace(parked, centre=(0.0, 1.0, 14.25), size=(1.8, 1.5, 4.7))  # +z end moved out
+    camera_end = dataclasses.replace(parked, centre=(0.0, 1.0, 13.75), size=(1.8, 1.5, 4.7))  # -z end moved out
+    moved = {name: np.abs(box_to_2d(b, K, np.linalg.inv(back), size) - box_to_2d(parked, K, np.linalg.inv(back), size)).max()
+             for name, b in (("origin", origin_end), ("camera", camera_end))}
+    assert seen_back == pytest.approx(moved["camera"], rel=1e-6) and moved["camera"] != pytest.approx(moved["origin"], rel=1e-2)
 
 
 def test_length_views_split_the_pairs_by_whether_a_view_sees_the_length(dataset, tmp_path, capsys):

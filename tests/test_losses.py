@@ -1155,7 +1155,9 @@ def test_moving_cars_seen_end_on_take_the_length_prior_instead_of_the_width_prio
     seen_px = np.array([length_view_px(b, obs, frames) for b in gt])
     moving = np.array([b.dynamic for b in gt])
     end_on = moving & (seen_px < 1.0)
-    assert end_on.sum() == 1 and (moving & ~end_on).sum() >= 1 and seen_px[moving & ~end_on].min() > 10.0
+    # the car ahead in the lane (instance 26002, 20 m straight ahead along the road), not the oncoming one
+    assert [gt[i].instance_id for i in np.flatnonzero(end_on)] == [26002]
+    assert (moving & ~end_on).sum() >= 1 and seen_px[moving & ~end_on].min() > 10.0
     size = np.stack([b.size for b in gt])
     width_gap = np.abs(size[:, 0] - tight_width(size[:, 2], size[:, 1]))
     length_gap = np.abs(size[:, 2] - typical_length(size[:, 0], size[:, 1]))
@@ -1166,6 +1168,47 @@ def test_moving_cars_seen_end_on_take_the_length_prior_instead_of_the_width_prio
                                                       init_yaw_dynamic=0.0, width_prior=3.0, length_prior=w_len))
         result = BoxOptimiser(obs, gt, cfg, init_boxes=gt).run()
         assert result.loss_history["init"][0] == pytest.approx(expected, rel=1e-4), w_len
+
+
+@pytest.mark.parametrize("parked, moving_anchor", [("centre", "seen_faces"), ("seen_faces", "centre")])
+def test_init_anchor_holds_faces_or_centres_per_motion(scene, parked, moving_anchor):
+    """Started at the ground truth, the initial boxes 0.6 m longer about the same centres: at step
+    0 a centre-anchored box costs nothing, a face-anchored one the shift of its seen faces (the end
+    face 0.3 m in along the length, the side face the profile's mirror span in), L1 over x and z."""
+    obs, gt = scene
+    init = [Box3D(b.centre, b.size + np.array([0.0, 0.0, 0.6]), b.yaw, b.velocity, b.dynamic, b.instance_id)
+            for b in gt]
+    moving = np.array([b.dynamic for b in gt])
+    cfg = quick(residual=False, steps=1)
+    normals = losses.seen_face_normals(init)   # (side_x, side_z, end_x, end_z)
+    shift = -cfg.car_profile.mirror * normals[:, :2] - 0.3 * normals[:, 2:]
+    faces = np.where(moving, moving_anchor == "seen_faces", parked == "seen_faces")
+    expected = np.where(faces, np.abs(shift).sum(axis=1), 0.0).mean()
+    assert expected > 0.05
+    cfg = cfg.replace(weights=dataclasses.replace(cfg.weights, init=1.0, init_dynamic=1.0, init_yaw=0.0,
+                                                  init_yaw_dynamic=0.0, width_prior=0.0, length_prior=0.0,
+                                                  init_anchor=parked, init_anchor_dynamic=moving_anchor))
+    result = BoxOptimiser(obs, gt, cfg, init_boxes=init).run()
+    assert result.loss_history["init"][0] == pytest.approx(expected, rel=1e-4)
+
+
+def test_length_view_px_is_the_most_any_view_shows_of_the_far_end(scene):
+    """Over frames, the largest far-end shift of the box at each frame's time in that frame's
+    camera: a parked car beside the road shows its length in every view, more in the nearer ones;
+    a box behind every camera shows nothing; a fast box is seen where its velocity puts it."""
+    obs, _ = scene
+    frames = np.arange(obs.num_frames)
+    beside = Box3D(np.array([-4.0, 1.0, 12.0]), np.array([1.8, 1.5, 4.2]), 0.0)
+    per_frame = [length_view_px(beside, obs, [f]) for f in frames]
+    assert length_view_px(beside, obs, frames) == pytest.approx(max(per_frame))
+    assert min(per_frame) >= 0.0 and max(per_frame) > 1.0
+    behind = dataclasses.replace(beside, centre=np.array([-4.0, 1.0, -60.0]))
+    assert length_view_px(behind, obs, frames) == 0.0
+    earliest = float(obs.dt.min())
+    assert earliest < 0
+    # moving so fast that at the earliest frame's time it stood 15 m ahead of the target camera
+    fast = dataclasses.replace(behind, velocity=np.array([0.0, 0.0, 75.0 / earliest]), dynamic=True)
+    assert length_view_px(fast, obs, frames) > 0.0
 
 
 def test_visible_surface_enters_the_init_term_with_its_weight_per_motion(scene):

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 import vsrd_mi  # noqa: F401  (selects the Mitsuba variant)
-from vsrd_mi.geometry.vehicle_sizes import (CATALOGUE, fit_residuals, length_coefficients, tight_width, typical_length,
-                                           width_coefficients)
+from vsrd_mi.geometry.vehicle_sizes import (CATALOGUE, catalogue_plane, fit_residuals, length_coefficients, tight_width,
+                                           typical_length, width_coefficients)
 
 
 def test_catalogue_is_plausible():
@@ -52,3 +52,9 @@ def test_length_plane_is_the_least_squares_fit_on_width_and_height():
     assert typical_length(1.89, 1.49) < 3.9 < 5.0 < typical_length(2.30, 1.99)
     ref = typical_length(np.array([1.9, 2.2]), np.array([1.5, 1.9]))
     np.testing.assert_allclose(np.array(typical_length(mi.Float([1.9, 2.2]), mi.Float([1.5, 1.9]))), ref, rtol=1e-6)
+
+
+def test_catalogue_plane_names_an_unknown_dimension():
+    assert catalogue_plane("length", "width_mirrors", "height") == length_coefficients()
+    with pytest.raises(ValueError, match="wheelbase"):
+        catalogue_plane("wheelbase", "length", "height")

@@ -120,7 +120,8 @@ def process_target(task: TargetTask) -> TargetResult:
         "boxes": [{**h.box.to_dict(), "confidence": float(c), "heading": h.to_dict(),
                    "length_held_from_inside": bool(result.held_ends is not None and result.held_ends[n].any()),
                    "length_unmeasured": bool(result.unmeasured_lengths is not None
-                                             and result.unmeasured_lengths[n])}
+                                             and result.unmeasured_lengths[n]),
+                   "length_from_prior": bool(result.length_from_prior is not None and result.length_from_prior[n])}
                   for n, (h, c) in enumerate(zip(headings, conf))],
         "loss": {k: {"first": v[0], "last": v[-1], "min": min(v)} for k, v in result.loss_history.items() if v},
     }

@@ -8,8 +8,8 @@ import sys
 from typing import Callable
 
 from ..errors import DataError
+from ..geometry.camera import LENGTH_PROBE_M
 from .metrics import LENGTH_SEEN_PX
-from .observability import LENGTH_PROBE_M
 from .sequence import GT_BOXES_DESCRIPTIONS, GT_BOXES_MASK, METRIC_3D, METRIC_BEV, EvalConfig, evaluate_sequence
 
 #: Column layout of the AP table: (difficulty, result key) pairs, per precision curve.

@@ -12,8 +12,8 @@ car's 2D box (the projected corners of its true box, clipped to the image) moves
 end, the one farther from that frame's camera, moves out by ``probe`` metres. Occluders are not
 taken into account (a parked car whose far end a neighbour hides has its own breakdown,
 occlusion). :func:`~vsrd_mi.geometry.camera.far_end_shift` measures one view (the optimisation
-uses it on its initial boxes to find the lengths no view measures). :func:`labelling_frames` gives the frames: those the default target selection
-picks around the evaluated frame (:func:`~vsrd_mi.data.selection.spec_for_frame`: its sources
+uses it on its initial boxes to find the lengths no view measures). :func:`labelling_frames`
+gives the frames: those the default target selection picks around the evaluated frame (:func:`~vsrd_mi.data.selection.spec_for_frame`: its sources
 and its group), which for a target are the views that labelled it and for a group frame the
 views of a target beside it.
 """
@@ -59,4 +59,4 @@ def length_view_shift(seq: Sequence, frames: Iterable[int], instance_ids: Iterab
     return shifts
 
 
-__all__ = ["LENGTH_PROBE_M", "far_end_shift", "labelling_frames", "length_view_shift"]
+__all__ = ["labelling_frames", "length_view_shift"]

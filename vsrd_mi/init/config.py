@@ -221,8 +221,9 @@ class FootprintConfig:
     #: the faces at the front of the smear. While the optimisation anchored a moving box's centre,
     #: 0.5 did better (0.1 doubled the development seeds' mean centre error, 0.24 -> 0.48 m: the
     #: centre lies half an assumed length behind the face); anchoring its faces
-    #: (``LossWeights.init_anchor_dynamic``), 0.1 / 0.5 gave development-traffic's moving cars
-    #: 0.832 / 0.764 mean 3D IoU and the development set's 0.784 / 0.785 (docs/accuracy.md).
+    #: (``LossWeights.init_anchor_dynamic``) without the length prior, 0.1 / 0.5 gave
+    #: development-traffic's moving cars 0.832 / 0.764 mean 3D IoU and the development set's
+    #: 0.784 / 0.785 (docs/accuracy.md).
     fit_quantile_dynamic: float = 0.1
     #: Take ``fit_quantile`` as the faces' quantile at ``reference_range`` and adapt it to each
     #: point's range (:func:`vsrd_mi.geometry.surface.range_quantile`: stereo noise grows with

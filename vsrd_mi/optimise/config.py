@@ -68,7 +68,8 @@ class LossWeights:
     #: the faces their cloud measured, and most moving cars are seen end-on, so the centre anchor
     #: set their length to the assumed one (city cars +15 % long); with ``seen_faces`` the length
     #: is the masks' where a view measures it and the length prior's where none does
-    #: (``length_prior``). Without that prior the masks shrank end-on vans and pickups by 10-25 %.
+    #: (``length_prior``). Without that prior the masks shrank end-on vans and pickups (development
+    #: moving vans -6 -> -15 %, pickups -13 -> -26 %).
     init_anchor_dynamic: str = "seen_faces"
     #: Init regulariser weight of moving cars. A car moving at constant velocity seen from a camera
     #: moving at constant velocity has no depth in its images (its offset, relative velocity and
@@ -125,8 +126,9 @@ class LossWeights:
     #: a box's length was the initialisation's assumed 4.3 m, held there by the centre anchor: on
     #: development-traffic moving city cars came out +15 % long, vans -10 %. With the faces anchored
     #: (``init_anchor_dynamic``) and this prior at 10, development / development-traffic moving cars
-    #: 0.819 / 0.787 -> 0.819 / 0.858 mean 3D IoU, the traffic set's moving city cars +15 -> +8 %,
-    #: hatchbacks +9 -> +2 % (docs/accuracy.md, "Lengths of cars seen end-on"). 0 switches it off.
+    #: (four targets per street) 0.819 / 0.787 -> 0.819 / 0.858 mean 3D IoU, the traffic set's
+    #: moving city cars +15 -> +8 %, hatchbacks +9 -> +2 % (docs/accuracy.md, "Lengths of moving
+    #: cars seen end-on"). 0 switches it off.
     length_prior: float = 10.0
     #: A moving box's length counts as measured when, in some view of its target or sources, its
     #: initial box's 2D box moves by at least this many pixels as its far end moves out by
@@ -645,6 +647,8 @@ def paper_config() -> AutolabelConfig:
     projection loss projects the default's :class:`CarProfile` (the paper projects the box's corners:
     ``--set car_profile.clearance=0 --set car_profile.overhang=0 --set car_profile.corner=0
     --set car_profile.mirror=0 --set car_profile.roof=1``).
+    A moving box seen end-on takes the length prior (``LossWeights.length_prior``, weight 10) as in
+    the default, which outweighs the size prior's hold on its initial length.
     The sequence-level consensus of parked cars (:class:`ConsensusConfig`, not in the paper)
     runs after the targets in both presets (``--set consensus.enabled=false``); both presets also
     lengthen, at the end of each target's optimisation, the lengths the masks hold from inside

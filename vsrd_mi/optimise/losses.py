@@ -389,7 +389,17 @@ class ShapePrior:
         return dr.sum(per_box) / max(self.count, 1)
 
 
-class WidthPrior:
+class _CataloguePrior:
+    """Per-box weights ``weights`` (N,) of a size prior from the vehicle catalogue."""
+
+    DRJIT_STRUCT = {"w": mi.Float}
+
+    def __init__(self, weights: np.ndarray):
+        self.count = len(weights)
+        self.w = to_float(np.asarray(weights, dtype=np.float64))
+
+
+class WidthPrior(_CataloguePrior):
     """Width of each box drawn towards the width real vehicles of its length and height have
     (:func:`vsrd_mi.geometry.vehicle_sizes.tight_width`), with per-box weights ``weights`` (N,).
 
@@ -398,19 +408,13 @@ class WidthPrior:
     height enter detached: the prior moves the width only, never the extents the masks measure.
     """
 
-    DRJIT_STRUCT = {"w": mi.Float}
-
-    def __init__(self, weights: np.ndarray):
-        self.count = len(weights)
-        self.w = to_float(np.asarray(weights, dtype=np.float64))
-
     def loss(self, dec: DecodedBoxes) -> mi.Float:
         """``sum_n w_n |width_n - tight_width(length_n, height_n)| / N`` (metres)."""
         expected = tight_width(2.0 * dr.detach(dec.half[2]), 2.0 * dr.detach(dec.half[1]))
         return dr.sum(self.w * dr.abs(2.0 * dec.half[0] - expected)) / max(self.count, 1)
 
 
-class LengthPrior(WidthPrior):
+class LengthPrior(_CataloguePrior):
     """Length of each box drawn towards the length real vehicles of its width and height have
     (:func:`vsrd_mi.geometry.vehicle_sizes.typical_length`), with per-box weights ``weights`` (N,).
 

@@ -206,6 +206,10 @@ class OptimisationResult:
     #: (N,) per box, whether no view measured its length (an end free either way) and the length
     #: was set from the prior above the shortest one the masks allow (:mod:`.hidden_length`).
     unmeasured_lengths: np.ndarray | None = None
+    #: (N,) per box, whether its length was held by the length prior (a moving box no view
+    #: measures the length of, ``LossWeights.length_prior``; all False with the prior off or
+    #: without initial boxes); None from code that does not report it.
+    length_from_prior: np.ndarray | None = None
 
 
 class BoxOptimiser:
@@ -236,12 +240,16 @@ class BoxOptimiser:
         self.latents = BoxLatents(BoxRanges(), self.n, CornerRange.of_profile(cfg.car_profile))
         self.start = self.latents.initial(np.stack([b.centre for b in boxes]), np.stack([b.size for b in boxes]),
                                           np.array([b.yaw for b in boxes]), np.stack([b.velocity for b in boxes]))
+        if init_boxes is not None and len(init_boxes) != self.n:
+            raise ValueError(f"target {obs.target}: init_boxes has {len(init_boxes)} boxes for {self.n} instances")
         self.init_boxes = init_boxes
         #: per box: (points (M, 3), their cameras (M, 3)) of its stereo cloud, or None
         self.surface_points = surface_points
         # supervision frames: target + sources
         self.frames = np.flatnonzero(obs.is_source | (np.arange(obs.num_frames) == 0))
         self.sampler = RaySampler(obs, self.frames, cfg.rays_per_step, cfg.seed)
+        #: (N,) the boxes whose length the length prior holds, in place of the width prior
+        self.length_from_prior = self._lengths_unmeasured()
         self.world_to_cam = np.linalg.inv(obs.cam_to_opt)
         self.bounds = image_bounds(obs.image_size)
         self.perm = np.arange(self.n)
@@ -378,7 +386,7 @@ class BoxOptimiser:
                                   steps=step + 1, seconds=_time.time() - t0, loss_history=history,
                                   stopped_early=stopped, sdf_evaluations=sdf_evals,
                                   projected_lanes=self._lanes.count if self._lanes else 0, held_ends=held,
-                                  unmeasured_lengths=unmeasured)
+                                  unmeasured_lengths=unmeasured, length_from_prior=self.length_from_prior)
 
     def _box_projection_loss(self, corner: mi.Float | None) -> hidden_length.LaneLoss:
         """The projection loss on every lane of every frame (the lanes of the last matching), as a
@@ -391,8 +399,9 @@ class BoxOptimiser:
 
     def _init_terms(self, velocity: bool) -> list:
         """The terms logged together as "init": the anchor (with the velocities where
-        ``velocity``), the priors on size, yaw and width and the visible surface (those whose
-        weights are set)."""
+        ``velocity``), the priors on size, yaw, width and length (the length prior on the
+        boxes of :attr:`length_from_prior`, which take no width prior) and the visible surface
+        (those whose weights are set)."""
         w = self.cfg.weights
         anchor = prior = None
         init_weights = np.where(self.dynamic, w.init_dynamic, w.init)
@@ -414,7 +423,7 @@ class BoxOptimiser:
                                       np.where(self.dynamic, w.init_yaw_dynamic, w.init_yaw))
             if not prior.active:
                 prior = None
-        end_on = self._lengths_unmeasured()
+        end_on = self.length_from_prior
         width_prior = losses.WidthPrior(np.where(end_on, 0.0, w.width_prior)) if w.width_prior > 0 else None
         length_prior = losses.LengthPrior(np.where(end_on, w.length_prior, 0.0)) if end_on.any() else None
         surface = self._visible_surface()
