@@ -1240,8 +1240,8 @@ def test_visible_surface_enters_the_init_term_with_its_weight_per_motion(scene):
                                    (5.0, 3.0, clouds, parked_only + moving_only), (0.0, 0.0, clouds, 0.0),
                                    (5.0, 3.0, None, 0.0)):
         cfg = base.replace(weights=dataclasses.replace(base.weights, init=0.0, init_dynamic=0.0, init_yaw=0.0,
-                                                       init_yaw_dynamic=0.0, width_prior=0.0, length_prior=0.0, surface=w,
-                                                       surface_dynamic=w_dyn))
+                                                       init_yaw_dynamic=0.0, width_prior=0.0, length_prior=0.0,
+                                                       surface=w, surface_dynamic=w_dyn))
         result = BoxOptimiser(obs, gt, cfg, init_boxes=gt, surface_points=points).run()
         assert result.loss_history["init"][0] == pytest.approx(want, rel=1e-3, abs=1e-6), (w, w_dyn, points is None)
 

@@ -178,8 +178,8 @@ def box_in_frame(box: Box3D, obs: Observations, f: int) -> Box3D:
 def length_view_px(box: Box3D, obs: Observations, frames, probe: float = LENGTH_PROBE_M) -> float:
     """The most, over ``frames`` (indices into ``obs``), that the box's 2D box moves when its far
     end moves out by ``probe`` metres (:func:`~vsrd_mi.geometry.camera.far_end_shift` through
-    each frame's full camera pose, at its time; 0 where it is out of view): how well those views measure the
-    box's length."""
+    each frame's full camera pose, at its time; 0 where it is out of view): how well those views
+    measure the box's length."""
     shifts = [far_end_shift(box, obs.K[f], obs.image_size, probe, world_to_cam=np.linalg.inv(obs.cam_to_opt[f]),
                             dt=float(obs.dt[f])) for f in np.asarray(frames, dtype=np.int64)]
     return max((s for s in shifts if s is not None), default=0.0)

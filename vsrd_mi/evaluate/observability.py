@@ -13,8 +13,8 @@ end, the one farther from that frame's camera, moves out by ``probe`` metres. Oc
 taken into account (a parked car whose far end a neighbour hides has its own breakdown,
 occlusion). :func:`~vsrd_mi.geometry.camera.far_end_shift` measures one view (the optimisation
 uses it on its initial boxes to find the lengths no view measures). :func:`labelling_frames`
-gives the frames: those the default target selection picks around the evaluated frame (:func:`~vsrd_mi.data.selection.spec_for_frame`: its sources
-and its group), which for a target are the views that labelled it and for a group frame the
+gives the frames: those the default target selection picks around the evaluated frame
+(:func:`~vsrd_mi.data.selection.spec_for_frame`: its sources and its group), which for a target are the views that labelled it and for a group frame the
 views of a target beside it.
 """
 

@@ -148,5 +148,5 @@ def fit_residuals() -> np.ndarray:
     return np.array([v.width_mirrors - tight_width(v.length, v.height) for v in CATALOGUE])
 
 
-__all__ = ["CATALOGUE", "VehicleDimensions", "catalogue_plane", "fit_residuals", "length_coefficients", "length_given_height",
-           "mirror_span", "tight_width", "typical_length", "width_coefficients"]
+__all__ = ["CATALOGUE", "VehicleDimensions", "catalogue_plane", "fit_residuals", "length_coefficients",
+           "length_given_height", "mirror_span", "tight_width", "typical_length", "width_coefficients"]

@@ -249,7 +249,7 @@ class BoxOptimiser:
         self.frames = np.flatnonzero(obs.is_source | (np.arange(obs.num_frames) == 0))
         self.sampler = RaySampler(obs, self.frames, cfg.rays_per_step, cfg.seed)
         #: (N,) the boxes whose length the length prior holds, in place of the width prior
-        self.length_from_prior = self._lengths_unmeasured()
+        self.length_from_prior = self._lengths_from_prior()
         self.world_to_cam = np.linalg.inv(obs.cam_to_opt)
         self.bounds = image_bounds(obs.image_size)
         self.perm = np.arange(self.n)
@@ -429,18 +429,18 @@ class BoxOptimiser:
         surface = self._visible_surface()
         return [t for t in (anchor, prior, width_prior, length_prior, surface) if t is not None]
 
-    def _lengths_unmeasured(self) -> np.ndarray:
+    def _lengths_from_prior(self) -> np.ndarray:
         """(N,) the moving boxes whose length the length prior holds: in no view of the target or
         its sources does their initial box's 2D box move by ``weights.length_prior_px`` when its
         far end moves out (:func:`~vsrd_mi.data.observations.length_view_px`); none without
         initial boxes or with the prior off."""
         w = self.cfg.weights
-        unmeasured = np.zeros(self.n, dtype=bool)
+        end_on = np.zeros(self.n, dtype=bool)
         if w.length_prior <= 0 or self.init_boxes is None:
-            return unmeasured
+            return end_on
         for i in np.flatnonzero(self.dynamic):
-            unmeasured[i] = length_view_px(self.init_boxes[i], self.obs, self.frames) < w.length_prior_px
-        return unmeasured
+            end_on[i] = length_view_px(self.init_boxes[i], self.obs, self.frames) < w.length_prior_px
+        return end_on
 
     def _update_lanes(self, perm: np.ndarray) -> None:
         """The projection lanes of the matching ``perm`` (rebuilt only when it changed)."""
