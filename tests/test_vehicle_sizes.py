@@ -8,19 +8,27 @@ import numpy as np
 import pytest
 
 import vsrd_mi  # noqa: F401  (selects the Mitsuba variant)
-from vsrd_mi.geometry.vehicle_sizes import (CATALOGUE, catalogue_plane, fit_residuals, length_coefficients, tight_width,
-                                           typical_length, width_coefficients)
+from vsrd_mi.geometry.vehicle_sizes import (CATALOGUE, catalogue_plane, fit_residuals, length_coefficients,
+                                           mirror_span, tight_width, typical_length, width_coefficients)
 
 
 def test_catalogue_is_plausible():
     for v in CATALOGUE:
-        assert 3.0 < v.length < 6.5 and 1.1 < v.height < 2.2, v.model
+        assert 3.0 < v.length < 6.5 and 1.1 < v.height < 2.2 and 1.5 < v.width < 2.1, v.model
         # door mirrors add 0.15-0.45 m to a body's width
-        assert 0.15 <= v.width_mirrors - v.width <= 0.45, v.model
+        assert v.width_mirrors is None or 0.15 <= v.width_mirrors - v.width <= 0.45, v.model
+    assert len({v.model for v in CATALOGUE}) == len(CATALOGUE)
+    # the city-car segment has models of its own, not one outlier at the end of the plane
+    assert sum(v.body == "city car" for v in CATALOGUE) >= 5
+
+
+def with_mirror_widths():
+    return [v for v in CATALOGUE if v.width_mirrors is not None]
 
 
 def test_plane_is_the_least_squares_fit():
-    design = np.array([[1.0, v.length, v.height] for v in CATALOGUE])
+    """The width plane through the vehicles that give a width across the mirrors."""
+    design = np.array([[1.0, v.length, v.height] for v in with_mirror_widths()])
     res = fit_residuals()
     # normal equations: the residuals are orthogonal to every column of the design matrix
     np.testing.assert_allclose(design.T @ res, 0.0, atol=1e-9)
@@ -39,22 +47,32 @@ def test_tight_width_on_numpy_and_drjit_agree():
 
 
 def test_length_plane_is_the_least_squares_fit_on_width_and_height():
-    """The length plane through the catalogue's tight widths and heights: residuals orthogonal to
-    the design (normal equations), wider vehicles longer, and its spread the few decimetres that
-    make it a prior for a length nothing measures, not a measurement."""
-    design = np.array([[1.0, v.width_mirrors, v.height] for v in CATALOGUE])
+    """The length plane through every catalogue vehicle's body width and height: residuals
+    orthogonal to the design (normal equations), wider vehicles longer, and its spread the few
+    decimetres that make it a prior for a length nothing measures, not a measurement."""
+    design = np.array([[1.0, v.width, v.height] for v in CATALOGUE])
     lengths = np.array([v.length for v in CATALOGUE])
     res = lengths - typical_length(design[:, 1], design[:, 2])
     np.testing.assert_allclose(design.T @ res, 0.0, atol=1e-9)
     assert 0.1 < np.sqrt(np.mean(res ** 2)) < 0.4
     assert length_coefficients()[1] > 0
-    # a city car's width and height give a short car, a van's a long one
-    assert typical_length(1.89, 1.49) < 3.9 < 5.0 < typical_length(2.30, 1.99)
+    # a city car's body width and height give a short car, a van's a long one
+    assert typical_length(1.64, 1.49) < 3.8 < 5.0 < typical_length(2.00, 1.99)
     ref = typical_length(np.array([1.9, 2.2]), np.array([1.5, 1.9]))
     np.testing.assert_allclose(np.array(typical_length(mi.Float([1.9, 2.2]), mi.Float([1.5, 1.9]))), ref, rtol=1e-6)
 
 
 def test_catalogue_plane_names_an_unknown_dimension():
-    assert catalogue_plane("length", "width_mirrors", "height") == length_coefficients()
+    assert catalogue_plane("length", "width", "height") == length_coefficients()
+    # a plane on the widths across the mirrors is fitted on the vehicles that give one
+    assert catalogue_plane("width_mirrors", "length", "height") == width_coefficients()
     with pytest.raises(ValueError, match="wheelbase"):
         catalogue_plane("wheelbase", "length", "height")
+
+
+def test_mirror_span_names_a_model_without_one():
+    assert mirror_span("Fiat 500 (2007)") == pytest.approx(1.89 - 1.63)
+    with pytest.raises(ValueError, match="VW up!"):
+        mirror_span("VW up! (2011)")
+    with pytest.raises(KeyError, match="Trabant"):
+        mirror_span("Trabant 601")

@@ -415,18 +415,28 @@ class WidthPrior(_CataloguePrior):
 
 
 class LengthPrior(_CataloguePrior):
-    """Length of each box drawn towards the length real vehicles of its width and height have
-    (:func:`vsrd_mi.geometry.vehicle_sizes.typical_length`), with per-box weights ``weights`` (N,).
+    """Length of each box drawn towards the length real vehicles of its body width and height
+    have (:func:`vsrd_mi.geometry.vehicle_sizes.typical_length`), with per-box weights
+    ``weights`` (N,).
 
     For the boxes whose length no view measures (a car seen end-on in every view), whose width
     and height the masks do measure; the width and height enter detached, so the prior moves the
-    length only. A box under this prior takes no :class:`WidthPrior` (the two planes together
-    would move its width and length round each other).
+    length only. A box holds the mirrors, ``mirror`` metres a side (``CarProfile.mirror``), and
+    the plane takes the body width, the box width less twice that. A box under this prior takes
+    no :class:`WidthPrior` (the two planes together would move its width and length round each
+    other).
     """
 
+    def __init__(self, weights: np.ndarray, mirror: float = 0.0):
+        super().__init__(weights)
+        if not mirror >= 0:
+            raise ValueError(f"LengthPrior: mirror must be >= 0 m, got {mirror}")
+        self.mirror = float(mirror)
+
     def loss(self, dec: DecodedBoxes) -> mi.Float:
-        """``sum_n w_n |length_n - typical_length(width_n, height_n)| / N`` (metres)."""
-        expected = typical_length(2.0 * dr.detach(dec.half[0]), 2.0 * dr.detach(dec.half[1]))
+        """``sum_n w_n |length_n - typical_length(width_n - 2 mirror, height_n)| / N`` (metres)."""
+        body_width = 2.0 * (dr.detach(dec.half[0]) - self.mirror)
+        expected = typical_length(body_width, 2.0 * dr.detach(dec.half[1]))
         return dr.sum(self.w * dr.abs(2.0 * dec.half[2] - expected)) / max(self.count, 1)
 
 
