@@ -117,10 +117,11 @@ class LossWeights:
     #: can outweigh the masks. 0 switches it off.
     width_prior: float = 30.0
     #: Length prior (not in the paper) for the moving cars whose length no view measures: L1
-    #: distance (m) of the box's length from the length real vehicles of its width and height have
-    #: (:func:`vsrd_mi.geometry.vehicle_sizes.typical_length`, a plane through the same catalogue,
-    #: residuals 0.27 m), in place of the width prior (the two planes together would move width
-    #: and length round each other). A car driving ahead of the camera or towards it is seen
+    #: distance (m) of the box's length from the length real vehicles of its body width and height
+    #: have (:func:`vsrd_mi.geometry.vehicle_sizes.typical_length`, a plane through 43 catalogue
+    #: vehicles' body widths, residuals 0.26 m; the box's width less twice ``CarProfile.mirror``),
+    #: in place of the width prior (the two planes together would move width and length round
+    #: each other). A car driving ahead of the camera or towards it is seen
     #: end-on: its stereo cloud spans 0.5-2 m along its axis and no view's mask box moves by a
     #: pixel when its far end does, while its width and height are what those views show best. Such
     #: a box's length was the initialisation's assumed 4.3 m, held there by the centre anchor: on
@@ -128,7 +129,9 @@ class LossWeights:
     #: (``init_anchor_dynamic``) and this prior at 10, development / development-traffic moving cars
     #: (four targets per street) 0.819 / 0.787 -> 0.819 / 0.858 mean 3D IoU, the traffic set's
     #: moving city cars +15 -> +8 %, hatchbacks +9 -> +2 % (docs/accuracy.md, "Lengths of moving
-    #: cars seen end-on"). 0 switches it off.
+    #: cars seen end-on"); the plane on body widths, with the catalogue's small cars: 0.833 /
+    #: 0.861, worst class length bias 5.7 / 10.5 -> 4.8 / 6.5 % ("The length plane on the body
+    #: width"). 0 switches it off.
     length_prior: float = 10.0
     #: A moving box's length counts as measured when, in some view of its target or sources, its
     #: initial box's 2D box moves by at least this many pixels as its far end moves out by
