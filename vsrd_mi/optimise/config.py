@@ -489,7 +489,7 @@ class HiddenLengthConfig:
     #: Only a bound at most this many of the prior's standard deviations below its mean length for
     #: the box's height is lengthened: from a bound far below, the truncated mean is the prior's
     #: mean, which made a city car held at 3.1 m 4.4 m long (development set; city cars' length
-    #: bias +1.9 -> +7.2 %). One standard deviation (0.38 m) below the mean keeps the long
+    #: bias +1.9 -> +7.2 %). One standard deviation (0.45 m) below the mean keeps the long
     #: vehicles whose hidden ends the step is for.
     min_score: float = -1.0
     #: Lengths no view measures (off by default): a box with an end that moving out costs less
