@@ -96,7 +96,7 @@ def footprint(box: Box3D, w2c: np.ndarray) -> np.ndarray:
     (False, True, 4.8, 1.9, [False, False]),  # the masks' front sides are the car's: its length is measured
     (True, False, 4.8, 1.9, [False, False]),  # the front end meets an occluder's edge in every view: a seen end
     (True, True, 5.4, 1.9, [False, False]),   # longer than the visible part: nothing holds the front end
-    (True, True, 4.8, 1.2, [True, False]),    # a low car seen to 4.8 m: longer than most (the prior's mean 4.1 m)
+    (True, True, 4.8, 1.2, [True, False]),    # a low car seen to 4.8 m: longer than most (the prior's mean 3.8 m)
     (True, True, 3.6, 1.9, [False, False]),   # a tall one seen to 3.6 m: that says less than the prior
 ])
 def test_a_far_end_hidden_in_every_view_is_held_from_inside(left_open, sweep, length, height, held):

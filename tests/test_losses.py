@@ -721,9 +721,9 @@ def test_length_prior_is_the_length_l1_from_the_catalogue_plane_and_moves_the_le
     sizes = np.array([[1.9, 1.5, 4.3], [2.2, 2.0, 4.4]])
     field = field_of(np.array([[0.5, 0.2, 10.0], [-3.0, 0.4, 16.0]]), sizes, np.array([0.3, -1.0]))
     b = field.boxes()
-    mirror = 0.12
+    mirror = CarProfile().mirror
     expected = typical_length(b["size"][:, 0] - 2 * mirror, b["size"][:, 1])
-    prior = losses.LengthPrior(np.array([2.0, 5.0]), mirror)
+    prior = losses.LengthPrior(np.array([2.0, 5.0]), mirror=mirror)
     by_hand = (2.0 * abs(b["size"][0, 2] - expected[0]) + 5.0 * abs(b["size"][1, 2] - expected[1])) / 2
     assert values(prior.loss(field.decode()))[0] == pytest.approx(by_hand, rel=1e-5)
     ad, fd = ad_and_central_differences(field, ("size",), prior.loss, {"size": 1e-3})
@@ -732,7 +732,7 @@ def test_length_prior_is_the_length_l1_from_the_catalogue_plane_and_moves_the_le
     assert np.all(np.abs(ad[:, 2]) > 0.1)
     assert np.all(ad[:, :2] == 0.0) and np.all(np.abs(fd[:, :2]) > 1e-3)
     with pytest.raises(ValueError, match="mirror"):
-        losses.LengthPrior(np.array([1.0]), -0.1)
+        losses.LengthPrior(np.array([1.0]), mirror=-0.1)
 
 
 def surface_cloud(centre, size, yaw, camera, count, rng, offset=0.0):
@@ -1164,15 +1164,16 @@ def test_moving_cars_seen_end_on_take_the_length_prior_instead_of_the_width_prio
     assert (moving & ~end_on).sum() >= 1 and seen_px[moving & ~end_on].min() > 10.0
     size = np.stack([b.size for b in gt])
     width_gap = np.abs(size[:, 0] - tight_width(size[:, 2], size[:, 1]))
-    mirror = CarProfile().mirror  # the plane takes the body width, the box's less the mirrors
-    length_gap = np.abs(size[:, 2] - typical_length(size[:, 0] - 2 * mirror, size[:, 1]))
-    for w_len, expected in ((4.0, np.where(end_on, 4.0 * length_gap, 3.0 * width_gap).mean()),
-                            (0.0, 3.0 * width_gap.mean())):
-        cfg = quick(residual=False, steps=1)
-        cfg = cfg.replace(weights=dataclasses.replace(cfg.weights, init=0.0, init_dynamic=0.0, init_yaw=0.0,
-                                                      init_yaw_dynamic=0.0, width_prior=3.0, length_prior=w_len))
-        result = BoxOptimiser(obs, gt, cfg, init_boxes=gt).run()
-        assert result.loss_history["init"][0] == pytest.approx(expected, rel=1e-4), w_len
+    for mirror in (quick().car_profile.mirror, 0.0):  # the plane takes the box width less the mirrors
+        length_gap = np.abs(size[:, 2] - typical_length(size[:, 0] - 2 * mirror, size[:, 1]))
+        for w_len, expected in ((4.0, np.where(end_on, 4.0 * length_gap, 3.0 * width_gap).mean()),
+                                (0.0, 3.0 * width_gap.mean())):
+            cfg = quick(residual=False, steps=1)
+            cfg = cfg.replace(weights=dataclasses.replace(cfg.weights, init=0.0, init_dynamic=0.0, init_yaw=0.0,
+                                                          init_yaw_dynamic=0.0, width_prior=3.0, length_prior=w_len),
+                              car_profile=dataclasses.replace(cfg.car_profile, mirror=mirror))
+            result = BoxOptimiser(obs, gt, cfg, init_boxes=gt).run()
+            assert result.loss_history["init"][0] == pytest.approx(expected, rel=1e-4), (mirror, w_len)
 
 
 @pytest.mark.parametrize("parked, moving_anchor", [("centre", "seen_faces"), ("seen_faces", "centre")])

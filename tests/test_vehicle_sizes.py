@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 import vsrd_mi  # noqa: F401  (selects the Mitsuba variant)
+from vsrd_mi.geometry import vehicle_sizes
 from vsrd_mi.geometry.vehicle_sizes import (CATALOGUE, catalogue_plane, fit_residuals, length_coefficients,
                                            mirror_span, tight_width, typical_length, width_coefficients)
 
@@ -22,7 +23,8 @@ def test_catalogue_is_plausible():
     assert sum(v.body == "city car" for v in CATALOGUE) >= 5
 
 
-def with_mirror_widths():
+def with_mirror_widths() -> list:
+    """The catalogue models whose data sheets give a width across the mirrors."""
     return [v for v in CATALOGUE if v.width_mirrors is not None]
 
 
@@ -35,6 +37,8 @@ def test_plane_is_the_least_squares_fit():
     assert np.abs(res).mean() < 0.05 and np.abs(res).max() < 0.12
     _, per_length, per_height = width_coefficients()
     assert per_length > 0 and per_height > 0  # longer and taller vehicles are wider
+    # the width plane runs through the 23 models with mirror widths, the first 23 of the catalogue
+    assert len(res) == 23 and with_mirror_widths() == list(CATALOGUE[:23])
 
 
 def test_tight_width_on_numpy_and_drjit_agree():
@@ -62,10 +66,12 @@ def test_length_plane_is_the_least_squares_fit_on_width_and_height():
     np.testing.assert_allclose(np.array(typical_length(mi.Float([1.9, 2.2]), mi.Float([1.5, 1.9]))), ref, rtol=1e-6)
 
 
-def test_catalogue_plane_names_an_unknown_dimension():
+def test_catalogue_plane_fits_the_models_that_give_its_dimensions_and_names_an_unknown_one():
     assert catalogue_plane("length", "width", "height") == length_coefficients()
-    # a plane on the widths across the mirrors is fitted on the vehicles that give one
-    assert catalogue_plane("width_mirrors", "length", "height") == width_coefficients()
+    # a plane on the widths across the mirrors: the least-squares fit over the models that give one
+    design = np.array([[1.0, v.length, v.height] for v in with_mirror_widths()])
+    expected, *_ = np.linalg.lstsq(design, [v.width_mirrors for v in with_mirror_widths()], rcond=None)
+    np.testing.assert_allclose(catalogue_plane("width_mirrors", "length", "height"), expected, rtol=1e-12)
     with pytest.raises(ValueError, match="wheelbase"):
         catalogue_plane("wheelbase", "length", "height")
 
@@ -76,3 +82,9 @@ def test_mirror_span_names_a_model_without_one():
         mirror_span("VW up! (2011)")
     with pytest.raises(KeyError, match="Trabant"):
         mirror_span("Trabant 601")
+
+
+def test_catalogue_plane_refuses_too_few_models(monkeypatch):
+    monkeypatch.setattr(vehicle_sizes, "CATALOGUE", CATALOGUE[:2])
+    with pytest.raises(ValueError, match="only 2 catalogue vehicles"):
+        catalogue_plane("length", "width", "height")

@@ -1,5 +1,5 @@
-"""How wide a vehicle's tight box is, given its length and height, and how long, given its width
-and height: priors from real vehicles.
+"""How wide a vehicle's tight box is, given its length and height, and how long, given its body
+width and height: priors from real vehicles.
 
 A parked car's width is the extent its images show least: seen from behind or in front its mask
 box spans ``width * cos(a) + length * sin(a)`` at a viewing angle ``a`` off its axis, and the
@@ -7,15 +7,15 @@ projection loss can trade the width against the yaw, the length and the range wi
 any mask box (docs/accuracy.md, "Widths"). Its length and height, by contrast, are fixed by the
 masks of the views that pass it. Vehicle widths follow their lengths and heights closely: small
 cars are narrow, long and tall vans wide. :func:`tight_width` is the least-squares plane
-``width = a + b * length + c * height`` through :data:`CATALOGUE`, the published dimensions of
-common European cars, SUVs, vans and pickups (manufacturers' data sheets; widths with the door
-mirrors unfolded, which is what a tight box holds). Its residuals over the catalogue are a few
-centimetres (:func:`fit_residuals`).
+``width = a + b * length + c * height`` through the 23 models of :data:`CATALOGUE`, the published
+dimensions of common European cars, SUVs, vans and pickups, whose data sheets give the width with
+the door mirrors unfolded, which is what a tight box holds. Its residuals over those models are a
+few centimetres (:func:`fit_residuals`).
 
 A car seen end-on in every view (driving ahead of the camera or towards it) is the other way
 round: its masks show its width and height but nothing of its length. :func:`typical_length` is
-the least-squares plane ``length = a + b * body_width + c * height`` through the same catalogue, a
-far looser relation (0.26 m rms: vans and pickups of one width and height differ by a metre), and
+the least-squares plane ``length = a + b * body_width + c * height`` through all 43 models, a far
+looser relation (0.26 m rms: vans and pickups of one width and height differ by a metre), and
 :func:`length_given_height` the line of the length on the height alone, for a length bounded from
 below (docs/accuracy.md). The length plane takes the body width, mirrors left out: every model's
 body width is published, so the plane can be fitted on every segment (the widths across the mirrors
@@ -23,8 +23,8 @@ are known for fewer models), and the mirrors' span varies from model to model in
 length.
 
 The first 23 models were written down before any synthetic or real sequence was run with the
-prior. The other 20, the best-selling models of the segments those left thin (one A-segment car
-among them), were added when the development sets' end-on city cars came out long: chosen by
+prior. The other 20, the best-selling models of the segments those left thin (the first 23 had one
+A-segment car), were added when the development sets' end-on city cars came out long: chosen by
 segment, not by their effect on any sequence, and nothing here is fitted to a sequence.
 """
 
@@ -34,6 +34,10 @@ from dataclasses import dataclass, fields
 from functools import lru_cache
 
 import numpy as np
+
+
+#: Fewest catalogue models that fix a plane in two dimensions.
+MIN_PLANE_MODELS = 3
 
 
 @dataclass(frozen=True)
@@ -113,6 +117,9 @@ def catalogue_plane(target: str, first: str, second: str) -> tuple[float, float,
     if unknown:
         raise ValueError(f"catalogue_plane: {unknown} are not dimensions of a catalogue vehicle {sorted(known)}")
     rows = [v for v in CATALOGUE if all(getattr(v, name) is not None for name in (target, first, second))]
+    if len(rows) < MIN_PLANE_MODELS:
+        raise ValueError(f"catalogue_plane: only {len(rows)} catalogue vehicles give {target}, {first} and {second}; "
+                         f"a plane needs {MIN_PLANE_MODELS}")
     design = np.array([[1.0, getattr(v, first), getattr(v, second)] for v in rows])
     values = np.array([getattr(v, target) for v in rows])
     coef, *_ = np.linalg.lstsq(design, values, rcond=None)
@@ -122,7 +129,7 @@ def catalogue_plane(target: str, first: str, second: str) -> tuple[float, float,
 @lru_cache(maxsize=1)
 def width_coefficients() -> tuple[float, float, float]:
     """``(a, b, c)`` of the least-squares plane ``width_mirrors = a + b * length + c * height``
-    through :data:`CATALOGUE`."""
+    through the :data:`CATALOGUE` models that give a width across the mirrors."""
     return catalogue_plane("width_mirrors", "length", "height")
 
 
@@ -142,13 +149,13 @@ def length_coefficients() -> tuple[float, float, float]:
     return catalogue_plane("length", "width", "height")
 
 
-def typical_length(width, height):
+def typical_length(body_width, height):
     """Expected length (m) of a vehicle of the given body width (mirrors left out) and height (m).
 
-    Works on floats, NumPy arrays and Dr.Jit arrays alike (a plane in ``width`` and ``height``).
+    Works on floats, NumPy arrays and Dr.Jit arrays alike (a plane in ``body_width`` and ``height``).
     """
     a, b, c = length_coefficients()
-    return a + b * width + c * height
+    return a + b * body_width + c * height
 
 
 @lru_cache(maxsize=1)
@@ -184,5 +191,5 @@ def fit_residuals() -> np.ndarray:
                      if v.width_mirrors is not None])
 
 
-__all__ = ["CATALOGUE", "VehicleDimensions", "catalogue_plane", "fit_residuals", "length_coefficients",
-           "length_given_height", "mirror_span", "tight_width", "typical_length", "width_coefficients"]
+__all__ = ["CATALOGUE", "MIN_PLANE_MODELS", "VehicleDimensions", "catalogue_plane", "fit_residuals",
+           "length_coefficients", "length_given_height", "mirror_span", "tight_width", "typical_length", "width_coefficients"]

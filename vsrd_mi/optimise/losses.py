@@ -421,13 +421,14 @@ class LengthPrior(_CataloguePrior):
 
     For the boxes whose length no view measures (a car seen end-on in every view), whose width
     and height the masks do measure; the width and height enter detached, so the prior moves the
-    length only. A box holds the mirrors, ``mirror`` metres a side (``CarProfile.mirror``), and
-    the plane takes the body width, the box width less twice that. A box under this prior takes
+    length only. A box holds the mirrors, ``mirror`` metres a side (``CarProfile.mirror``: the
+    projection loss fits the body, that much narrower a side, to the masks), and the plane takes
+    the body width, the box width less twice that. A box under this prior takes
     no :class:`WidthPrior` (the two planes together would move its width and length round each
     other).
     """
 
-    def __init__(self, weights: np.ndarray, mirror: float = 0.0):
+    def __init__(self, weights: np.ndarray, *, mirror: float):
         super().__init__(weights)
         if not mirror >= 0:
             raise ValueError(f"LengthPrior: mirror must be >= 0 m, got {mirror}")

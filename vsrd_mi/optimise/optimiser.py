@@ -425,7 +425,7 @@ class BoxOptimiser:
                 prior = None
         end_on = self.length_from_prior
         width_prior = losses.WidthPrior(np.where(end_on, 0.0, w.width_prior)) if w.width_prior > 0 else None
-        length_prior = (losses.LengthPrior(np.where(end_on, w.length_prior, 0.0), self.cfg.car_profile.mirror)
+        length_prior = (losses.LengthPrior(np.where(end_on, w.length_prior, 0.0), mirror=self.cfg.car_profile.mirror)
                         if end_on.any() else None)
         surface = self._visible_surface()
         return [t for t in (anchor, prior, width_prior, length_prior, surface) if t is not None]
