@@ -14,8 +14,8 @@ taken into account (a parked car whose far end a neighbour hides has its own bre
 occlusion). :func:`~vsrd_mi.geometry.camera.far_end_shift` measures one view (the optimisation
 uses it on its initial boxes to find the lengths no view measures). :func:`labelling_frames`
 gives the frames: those the default target selection picks around the evaluated frame
-(:func:`~vsrd_mi.data.selection.spec_for_frame`: its sources and its group), which for a target are the views that labelled it and for a group frame the
-views of a target beside it.
+(:func:`~vsrd_mi.data.selection.spec_for_frame`: its sources and its group), which for a target
+are the views that labelled it and for a group frame the views of a target beside it.
 """
 
 from __future__ import annotations

@@ -192,4 +192,5 @@ def fit_residuals() -> np.ndarray:
 
 
 __all__ = ["CATALOGUE", "MIN_PLANE_MODELS", "VehicleDimensions", "catalogue_plane", "fit_residuals",
-           "length_coefficients", "length_given_height", "mirror_span", "tight_width", "typical_length", "width_coefficients"]
+           "length_coefficients", "length_given_height", "mirror_span", "tight_width", "typical_length",
+           "width_coefficients"]
